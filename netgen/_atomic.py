@@ -1,0 +1,86 @@
+"""Atomic file and folder writes: nothing half-written is ever trusted.
+
+A file is written to a temporary name in the same folder, flushed, fsynced and renamed over
+the target; a folder is built under a temporary name and renamed into place. A process killed
+mid-write (even with SIGKILL) leaves only ``*.tmp-*`` names behind, which readers ignore and
+the next build removes.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import shutil
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+
+from .errors import BuildError
+
+
+def _disk_error(path, e: OSError) -> BuildError:
+    if e.errno == errno.ENOSPC:
+        return BuildError(f"disk full while writing {path}")
+    if e.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        return BuildError(f"cannot write {path}: permission denied")
+    return BuildError(f"cannot write {path}: {e.strerror or e}")
+
+
+@contextmanager
+def atomic_path(target: str | os.PathLike):
+    """Yield a temporary path next to `target`; on success it is renamed to `target`."""
+    target = Path(target)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=target.name + ".tmp-", dir=target.parent)
+        os.close(fd)
+    except OSError as e:
+        raise _disk_error(target, e) from None
+    try:
+        yield Path(tmp)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, target)
+    except OSError as e:
+        _unlink(tmp)
+        raise _disk_error(target, e) from None
+    except BaseException:
+        _unlink(tmp)
+        raise
+
+
+def write_bytes(target, data: bytes) -> None:
+    with atomic_path(target) as tmp:
+        Path(tmp).write_bytes(data)
+
+
+def write_text(target, text: str) -> None:
+    write_bytes(target, text.encode("utf-8"))
+
+
+def _unlink(p):
+    try:
+        os.unlink(p)
+    except OSError:
+        pass
+
+
+def remove_stale_temps(folder: Path) -> None:
+    """Remove leftovers of killed writers (``*.tmp-*``) in a folder (not recursive)."""
+    if not folder.is_dir():
+        return
+    for p in folder.glob("*.tmp-*"):
+        try:
+            shutil.rmtree(p) if p.is_dir() else p.unlink()
+        except OSError:
+            pass
+
+
+def check_writable(folder: Path) -> None:
+    """Fail early, with one line, when an output folder cannot be created or written."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".probe.tmp-", dir=folder)
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as e:
+        raise _disk_error(folder, e) from None

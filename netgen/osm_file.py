@@ -1,0 +1,131 @@
+"""Local OSM files: .osm, .osm.pbf, .osm.gz, .osm.bz2 (read with pyosmium).
+
+netconvert reads OSM XML only, so other encodings are converted once with pyosmium (fast, in
+C++) into the cache, keyed by the file's content hash. Every file is checked first: an empty,
+corrupt or truncated file, or one with no ways at all, is a one-line DataError.
+"""
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import osmium
+
+from ._atomic import atomic_path
+from .errors import DataError
+
+SUFFIXES = (".osm", ".osm.pbf", ".pbf", ".osm.gz", ".osm.bz2", ".xml")
+
+
+def file_hash(path: Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while True:
+            b = f.read(chunk)
+            if not b:
+                break
+            h.update(b)
+    return h.hexdigest()
+
+
+def _suffix_ok(path: Path) -> bool:
+    name = path.name.lower()
+    return any(name.endswith(s) for s in SUFFIXES)
+
+
+def scan(path: Path) -> dict:
+    """Read the whole file once with pyosmium; return counts and the data bbox.
+
+    Raises DataError for a missing, empty, corrupt or truncated file."""
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"OSM file not found: {path}")
+    if not _suffix_ok(path):
+        raise DataError(f"OSM file {path.name}: unknown format (use .osm, .osm.pbf, .osm.gz or .osm.bz2)")
+    if path.stat().st_size == 0:
+        raise DataError(f"OSM file {path.name} is empty")
+
+    class Counter(osmium.SimpleHandler):
+        def __init__(self):
+            super().__init__()
+            self.nodes = self.ways = self.relations = 0
+            self.highways = 0
+            self.minlon = self.minlat = 1e9
+            self.maxlon = self.maxlat = -1e9
+
+        def node(self, n):
+            self.nodes += 1
+            loc = n.location
+            if loc.valid():
+                lon, lat = loc.lon, loc.lat
+                if lon < self.minlon: self.minlon = lon
+                if lon > self.maxlon: self.maxlon = lon
+                if lat < self.minlat: self.minlat = lat
+                if lat > self.maxlat: self.maxlat = lat
+
+        def way(self, w):
+            self.ways += 1
+            if "highway" in w.tags:
+                self.highways += 1
+
+        def relation(self, r):
+            self.relations += 1
+
+    c = Counter()
+    try:
+        c.apply_file(str(path))
+    except Exception as e:  # osmium raises RuntimeError subclasses for parse errors
+        msg = " ".join(str(e).split())[:200]
+        raise DataError(f"OSM file {path.name} is corrupt or truncated ({msg})") from None
+    if c.nodes == 0 or c.ways == 0:
+        raise DataError(f"OSM file {path.name} has no map data ({c.nodes} nodes, {c.ways} ways)")
+    return {"nodes": c.nodes, "ways": c.ways, "relations": c.relations, "highway_ways": c.highways,
+            "bbox": (c.minlat, c.minlon, c.maxlat, c.maxlon)}
+
+
+def header_bbox(path: Path):
+    """The (south, west, north, east) box from the file header, or None."""
+    try:
+        r = osmium.io.Reader(str(path), osmium.osm.osm_entity_bits.NOTHING)
+        box = r.header().box()
+        r.close()
+    except Exception:
+        return None
+    if not box.valid():
+        return None
+    return (box.bottom_left.lat, box.bottom_left.lon, box.top_right.lat, box.top_right.lon)
+
+
+def to_osm_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
+    """Check `path` and return (OSM XML file netconvert can read, scan info).
+
+    Plain .osm files are used in place; others are converted once into the cache."""
+    path = Path(path).resolve()
+    digest = file_hash(path)
+    info_cached = None
+    out = path
+    if not path.name.lower().endswith((".osm", ".xml")):
+        out = Path(cache_dir) / "osm" / f"{digest[:24]}.osm"
+    marker = Path(cache_dir) / "osm" / f"{digest[:24]}.scan"
+    if marker.exists() and out.exists():
+        import json
+        try:
+            info_cached = json.loads(marker.read_text())
+        except ValueError:
+            info_cached = None
+    if info_cached is not None:
+        info_cached["bbox"] = tuple(info_cached["bbox"])
+        return out, info_cached
+    info = scan(path)
+    if out != path:
+        with atomic_path(out) as tmp:
+            w = osmium.SimpleWriter(osmium.io.File(str(tmp), "osm"), overwrite=True)
+            try:
+                osmium.apply(str(path), w)
+            finally:
+                w.close()
+    import json
+    from ._atomic import write_text
+    write_text(marker, json.dumps({**info, "sha256": digest}))
+    info["sha256"] = digest
+    return out, info

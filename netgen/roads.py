@@ -1,0 +1,375 @@
+"""Road surfaces from the SUMO network's own lane, junction and crossing shapes.
+
+Positions, widths and connections are exactly SUMO's: each lane is a strip around its SUMO
+centreline, each junction its SUMO polygon, each walking area and crossing its SUMO shape.
+Heights follow the ground: every edge gets one height profile along its middle lane, sampled
+from the natural terrain, and all its lanes take their height from that profile at the same
+fraction of their length, so the road is level across its width; junction, walking-area and
+crossing corners take the height of the nearest lane point. Strips are resampled every
+``step`` metres so the surface follows the terrain between SUMO's (often sparse) points.
+
+Everything is computed on concatenated arrays of all lanes at once (a city has ~10^4 lanes;
+per-lane Python would dominate the build).
+
+Mesh classes: ``asphalt`` (vehicle lanes, junctions, crossings), ``sidewalk`` (pedestrian-only
+lanes and walking areas, 2 cm higher) and ``marking`` (lane lines and zebra stripes, visual
+only, 1.5 cm above the asphalt). Each piece keeps its SUMO id and the OSM way ids.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import mapbox_earcut
+import numpy as np
+import shapely
+from scipy.spatial import cKDTree
+
+SIDEWALK_LIFT = 0.02
+MARKING_LIFT = 0.015
+MARK_W = 0.12
+DASH_ON, DASH_OFF = 3.0, 6.0
+
+
+@dataclass
+class MeshPart:
+    """Many pieces of one class in one vertex/face array; piece k owns faces [fstart[k], fstart[k+1])."""
+    kind: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    ids: list                     # SUMO id per piece
+    elements: list                # lane | junction | walkingarea | crossing | marking
+    osm: list                     # tuple of OSM way ids per piece
+    fstart: np.ndarray            # (pieces + 1,)
+    centroids: np.ndarray         # (pieces, 2)
+
+
+@dataclass
+class RoadGeometry:
+    parts: dict = field(default_factory=dict)      # kind -> list[MeshPart]
+    support_pts: np.ndarray = None                 # (n, 3) road surface points for levelling
+    support_hw: np.ndarray = None                  # (n,) ground-is-road radius at each point
+    carriageway_parts: list = field(default_factory=list)
+    stats: dict = field(default_factory=dict)
+    _carriageway: object = None
+
+    @property
+    def carriageway(self):
+        """Where vehicles drive (union of vehicle lanes and junctions), computed on first use."""
+        if self._carriageway is None:
+            parts = [p for p in self.carriageway_parts if p is not None and not p.is_empty]
+            self._carriageway = shapely.union_all(parts) if parts else shapely.GeometryCollection()
+        return self._carriageway
+
+
+# ---------------------------------------------------------------------------------------
+# vectorised polylines: many polylines as one (N, 2) array plus a group id per point
+# ---------------------------------------------------------------------------------------
+def _concat(shapes):
+    lens = np.array([len(s) for s in shapes], dtype=np.int64)
+    P = np.vstack(shapes) if len(shapes) else np.zeros((0, 2))
+    gid = np.repeat(np.arange(len(shapes)), lens)
+    return P, gid
+
+
+def resample_many(P, gid, step):
+    """Insert points so no segment is longer than `step`; original points kept."""
+    same = gid[1:] == gid[:-1]
+    seg = P[1:] - P[:-1]
+    L = np.hypot(seg[:, 0], seg[:, 1])
+    n = np.where(same, np.maximum(1, np.ceil(L / step)).astype(np.int64), 0)
+    starts = np.ones(len(P), dtype=bool)
+    starts[1:] = ~same
+    # each polyline's first point, then for each segment n new points
+    counts = np.zeros(len(P), dtype=np.int64)
+    counts[starts] += 1
+    counts[1:] += n
+    total = counts.sum()
+    out = np.empty((total, 2))
+    ogid = np.empty(total, dtype=np.int64)
+    pos = np.cumsum(counts) - counts
+    first_idx = np.nonzero(starts)[0]
+    out[pos[first_idx]] = P[first_idx]
+    ogid[pos[first_idx]] = gid[first_idx]
+    seg_idx = np.nonzero(n)[0]
+    reps = n[seg_idx]
+    k = np.repeat(seg_idx, reps)
+    within = np.arange(reps.sum()) - np.repeat(np.cumsum(reps) - reps, reps) + 1
+    t = within / np.repeat(reps, reps)
+    dst = np.repeat(pos[seg_idx + 1] + (starts[seg_idx + 1].astype(np.int64)), reps) + within - 1
+    out[dst] = P[k] + t[:, None] * seg[k]
+    ogid[dst] = gid[k]
+    return out, ogid
+
+
+def _arclen(P, gid):
+    d = np.zeros(len(P))
+    same = gid[1:] == gid[:-1]
+    d[1:] = np.where(same, np.hypot(*(P[1:] - P[:-1]).T), 0.0)
+    c = np.cumsum(d)
+    first = np.ones(len(P), dtype=bool)
+    first[1:] = ~same
+    base = np.maximum.accumulate(np.where(first, c, 0.0))
+    s = c - base
+    total = np.zeros(gid.max() + 1 if len(gid) else 0)
+    np.maximum.at(total, gid, s)
+    return s, total
+
+
+def _normals_many(P, gid):
+    """Unit left normals (mitred at bends, bounded) of many polylines."""
+    n = len(P)
+    same_next = np.zeros(n, dtype=bool)
+    same_next[:-1] = gid[1:] == gid[:-1]
+    same_prev = np.zeros(n, dtype=bool)
+    same_prev[1:] = same_next[:-1]
+    d = np.zeros((n, 2))
+    d[:-1] = P[1:] - P[:-1]
+    L = np.hypot(d[:, 0], d[:, 1])
+    L[L == 0] = 1.0
+    d = d / L[:, None]
+    d[~same_next] = 0.0                      # segment direction from point i to i+1
+    prev = np.zeros((n, 2))
+    prev[1:] = d[:-1]
+    prev[~same_prev] = 0.0
+    t = d + prev
+    tl = np.hypot(t[:, 0], t[:, 1])
+    tl[tl < 1e-9] = 1.0
+    t = t / tl[:, None]
+    nrm = np.column_stack([-t[:, 1], t[:, 0]])
+    segn = np.column_stack([-d[:, 1], d[:, 0]])
+    cos = np.where(same_next & same_prev, np.einsum("ij,ij->i", nrm, segn), 1.0)
+    return nrm / np.clip(cos, 0.5, 1.0)[:, None]
+
+
+def _strips(C, gid, z, halfw, lift=0.0, seg_mask=None):
+    """Triangle strips around many centrelines. Returns vertices, faces, face group ids."""
+    nrm = _normals_many(C, gid) * halfw[:, None]
+    v = np.empty((2 * len(C), 3))
+    v[0::2, :2] = C + nrm
+    v[1::2, :2] = C - nrm
+    v[0::2, 2] = z + lift
+    v[1::2, 2] = z + lift
+    ok = gid[1:] == gid[:-1]
+    if seg_mask is not None:
+        ok &= seg_mask
+    i = np.nonzero(ok)[0] * 2
+    f = np.concatenate([np.column_stack([i, i + 1, i + 2]), np.column_stack([i + 1, i + 3, i + 2])])
+    fg = np.concatenate([gid[i // 2], gid[i // 2]])
+    order = np.argsort(fg, kind="stable")
+    return v, f[order], fg[order]
+
+
+def _part(kind, v, f, fg, n_groups, ids, elements, osm, centroids):
+    counts = np.bincount(fg, minlength=n_groups) if len(fg) else np.zeros(n_groups, dtype=np.int64)
+    fstart = np.concatenate([[0], np.cumsum(counts)])
+    return MeshPart(kind, v, f.astype(np.int64), list(ids), list(elements), list(osm), fstart, centroids)
+
+
+# ---------------------------------------------------------------------------------------
+def build_roads(net, ground, step: float = 2.5) -> RoadGeometry:
+    """Meshes for every SUMO edge, junction, walking area and crossing of `net`.
+
+    `ground(x, y)` is the natural terrain height (vectorised)."""
+    geo = RoadGeometry()
+    edges = [e for e in net.edges.values() if e.function == "normal" and e.lanes]
+    lanes, lane_edge, refs = [], [], []
+    for ei, e in enumerate(edges):
+        ls = sorted((l for l in e.lanes if len(l.shape) >= 2), key=lambda l: l.index)
+        if not ls:
+            continue
+        refs.append((ei, ls[len(ls) // 2].shape))
+        for l in ls:
+            lanes.append(l)
+            lane_edge.append(ei)
+    lane_edge = np.array(lane_edge, dtype=np.int64)
+
+    # 1. height profile per edge along its middle lane
+    ref_e = np.array([r[0] for r in refs], dtype=np.int64)
+    RP, rg = _concat([r[1] for r in refs])
+    RP, rg = resample_many(RP, rg, step)
+    rs, rtot = _arclen(RP, rg)
+    rkey = 2.0 * ref_e[rg] + rs / np.maximum(rtot[rg], 1e-9)
+    rz = np.asarray(ground(RP[:, 0], RP[:, 1]), dtype=float)
+
+    # 2. lanes as strips
+    LP, lg = _concat([l.shape for l in lanes])
+    C, cg = resample_many(LP, lg, step)
+    cs, ctot = _arclen(C, cg)
+    key = 2.0 * lane_edge[cg] + cs / np.maximum(ctot[cg], 1e-9)
+    cz = np.interp(key, rkey, rz)
+    width = np.array([l.width for l in lanes])
+    side = np.array([l.pedestrian_only for l in lanes])
+    drive = np.array([l.drivable for l in lanes])
+    hw = width[cg] / 2.0
+    ids = [lanes[k].id for k in range(len(lanes))]
+    osm = [edges[lane_edge[k]].orig_ids for k in range(len(lanes))]
+    cent = np.zeros((len(lanes), 2))
+    np.add.at(cent, cg, C)
+    cent /= np.maximum(np.bincount(cg, minlength=len(lanes)), 1)[:, None]
+    parts = {"asphalt": [], "sidewalk": [], "marking": []}
+    for kind, mask, lift in (("asphalt", ~side, 0.0), ("sidewalk", side, SIDEWALK_LIFT)):
+        sel = np.nonzero(mask)[0]
+        if not len(sel):
+            continue
+        remap = -np.ones(len(lanes), dtype=np.int64)
+        remap[sel] = np.arange(len(sel))
+        pm = mask[cg]
+        v, f, fg = _strips(C[pm], remap[cg[pm]], cz[pm], hw[pm], lift)
+        parts[kind].append(_part(kind, v, f, fg, len(sel), [ids[k] for k in sel], ["lane"] * len(sel),
+                                 [osm[k] for k in sel], cent[sel]))
+    # support points for levelling and for junction heights: centrelines and lane corners
+    nrm = _normals_many(C, cg) * hw[:, None]
+    corners = np.vstack([np.column_stack([C + nrm, cz]), np.column_stack([C - nrm, cz])])
+    sup = [np.column_stack([C, cz]), corners]
+    sup_hw = [hw, np.zeros(len(corners))]
+    tree = cKDTree(np.vstack(sup)[:, :2])
+    supz = np.concatenate([cz, cz, cz])
+
+    def zfun(xy):
+        _, i = tree.query(xy, k=1)
+        return supz[i]
+
+    # 3. lane markings on vehicle lanes: dashed between lanes of one edge, solid at the edges
+    _markings(parts, edges, lanes, lane_edge, drive, C, cg, cz, cs, hw)
+
+    # 4. junctions, walking areas, crossings: polygons (earcut) with heights from the lanes
+    polys, pkind, pid, pel = [], [], [], []
+    for j in net.junctions.values():
+        if j.type != "internal" and len(j.shape) >= 3:
+            polys.append(j.shape); pkind.append("asphalt"); pid.append(j.id); pel.append("junction")
+    crossings = []
+    for e in net.edges.values():
+        if e.function == "walkingarea" and e.lanes and len(e.lanes[0].shape) >= 3:
+            polys.append(e.lanes[0].shape); pkind.append("sidewalk"); pid.append(e.id); pel.append("walkingarea")
+        elif e.function == "crossing" and e.lanes and len(e.lanes[0].shape) >= 2:
+            crossings.append(e)
+    jpolys = []
+    for kind in ("asphalt", "sidewalk"):
+        sel = [k for k in range(len(polys)) if pkind[k] == kind]
+        vs, fs, fg, off, keep = [], [], [], 0, []
+        for k in sel:
+            ring = polys[k]
+            if ring[0, 0] == ring[-1, 0] and ring[0, 1] == ring[-1, 1]:
+                ring = ring[:-1]
+            if len(ring) < 3:
+                continue
+            tri = mapbox_earcut.triangulate_float64(ring, np.array([len(ring)], dtype=np.uint32))
+            if len(tri) == 0:
+                continue
+            vs.append(ring)
+            fs.append(tri.reshape(-1, 3) + off)
+            fg.append(np.full(len(tri) // 3, len(keep)))
+            off += len(ring)
+            keep.append(k)
+            if kind == "asphalt":
+                jpolys.append(ring)
+        if not keep:
+            continue
+        V2 = np.vstack(vs)
+        Z = zfun(V2) + (SIDEWALK_LIFT if kind == "sidewalk" else 0.0)
+        V = np.column_stack([V2, Z])
+        F = np.vstack(fs)
+        FG = np.concatenate(fg)
+        cen = np.array([polys[k][:, :2].mean(axis=0) for k in keep])
+        parts[kind].append(_part(kind, V, F, FG, len(keep), [pid[k] for k in keep],
+                                 [pel[k] for k in keep], [()] * len(keep), cen))
+        if kind == "asphalt":
+            # junction interiors as levelling support: centroid with the polygon's reach
+            radius = np.array([np.max(np.hypot(*(polys[k][:, :2] - polys[k][:, :2].mean(0)).T)) for k in keep])
+            sup.append(np.column_stack([cen, zfun(cen)]))
+            sup_hw.append(radius)
+            sup.append(V)
+            sup_hw.append(np.zeros(len(V)))
+    if crossings:
+        XP, xg = _concat([e.lanes[0].shape for e in crossings])
+        XC, xcg = resample_many(XP, xg, step)
+        xz = zfun(XC) + 0.005
+        xw = np.array([e.lanes[0].width for e in crossings])
+        v, f, fg = _strips(XC, xcg, xz, xw[xcg] / 2.0)
+        xcent = np.zeros((len(crossings), 2))
+        np.add.at(xcent, xcg, XC)
+        xcent /= np.bincount(xcg, minlength=len(crossings))[:, None]
+        parts["asphalt"].append(_part("asphalt", v, f, fg, len(crossings), [e.id for e in crossings],
+                                      ["crossing"] * len(crossings), [()] * len(crossings), xcent))
+        # zebra: 0.5 m stripes every metre along the walking direction, 90 % of the width
+        xs, xtot = _arclen(XC, xcg)
+        Z2, z2g = resample_many(XP, xg, 0.5)
+        zs, _ = _arclen(Z2, z2g)
+        zz = zfun(Z2) + 0.005
+        seg_on = (np.floor((zs[:-1] + zs[1:]) / 2.0 / 0.5) % 2 == 0) & (zs[1:] > zs[:-1])
+        v, f, fg = _strips(Z2, z2g, zz, 0.45 * xw[z2g], MARKING_LIFT, seg_mask=seg_on)
+        parts["marking"].append(_part("marking", v, f, fg, len(crossings), [e.id for e in crossings],
+                                      ["zebra"] * len(crossings), [()] * len(crossings), xcent))
+    geo.parts = {k: v for k, v in parts.items() if v}
+    geo.support_pts = np.vstack(sup)
+    geo.support_hw = np.concatenate(sup_hw)
+    # carriageway: where vehicles drive (lanes for cars + junction polygons)
+    dl = np.nonzero(drive)[0]
+    if len(dl):
+        DP, dg = _concat([lanes[k].shape for k in dl])
+        lines = shapely.linestrings(DP, indices=dg)
+    else:
+        lines = []
+    bufs = list(shapely.buffer(lines, width[dl] / 2.0, cap_style="flat", join_style="mitre")) if len(dl) else []
+    if jpolys:
+        JP, jg = _concat([np.vstack([r, r[:1]]) for r in jpolys])
+        jp = shapely.polygons(shapely.linearrings(JP, indices=jg))
+    else:
+        jp = np.array([])
+    if len(jp):
+        bad = ~shapely.is_valid(jp)
+        jp[bad] = shapely.make_valid(jp[bad])
+    geo.carriageway_parts = list(bufs) + list(jp)
+    geo.stats = {"lanes_meshed": len(lanes), "junctions_meshed": len(jpolys),
+                 "walkingareas_meshed": sum(1 for e in pel if e == "walkingarea"),
+                 "crossings_meshed": len(crossings),
+                 "faces": int(sum(len(p.faces) for ps in geo.parts.values() for p in ps))}
+    return geo
+
+
+def _markings(parts, edges, lanes, lane_edge, drive, C, cg, cz, cs, hw):
+    """Lane lines on vehicle lanes: dashed between two vehicle lanes of one edge, solid at the
+    right edge of the first and the left edge of the last vehicle lane."""
+    dl = np.nonzero(drive)[0]
+    if not len(dl):
+        return
+    # per edge: rank of each vehicle lane among the edge's vehicle lanes
+    e_of = lane_edge[dl]
+    first = np.ones(len(dl), dtype=bool)
+    first[1:] = e_of[1:] != e_of[:-1]
+    last = np.ones(len(dl), dtype=bool)
+    last[:-1] = e_of[1:] != e_of[:-1]
+    is_first = np.zeros(len(lanes), dtype=bool); is_first[dl[first]] = True
+    is_last = np.zeros(len(lanes), dtype=bool); is_last[dl[last]] = True
+    pm = drive[cg]
+    P, g, z, s, h = C[pm], cg[pm], cz[pm], cs[pm], hw[pm]
+    nrm = _normals_many(P, g)
+    lines = []   # (points, gid, seg_mask)
+    # solid right edge of the first vehicle lane
+    m = is_first[g]
+    lines.append((P[m] - nrm[m] * (h[m] - MARK_W)[:, None], g[m], z[m], None))
+    # left edge of each vehicle lane: dashed if another vehicle lane follows, else solid
+    left = P + nrm * (h - np.where(is_last[g], MARK_W, 0.0))[:, None]
+    mid = 0.5 * (s[1:] + s[:-1])
+    dashed_on = (mid % (DASH_ON + DASH_OFF)) < DASH_ON
+    m_last = is_last[g]
+    seg_solid = m_last[1:] & m_last[:-1]
+    seg_dash = (~m_last[1:]) & (~m_last[:-1]) & dashed_on
+    lines.append((left, g, z, seg_solid | seg_dash))
+    vs, fs, fgs, off = [], [], [], 0
+    for pts, gg, zz, mask in lines:
+        if mask is None:
+            v, f, fg = _strips(pts, gg, zz, np.full(len(pts), MARK_W / 2.0), MARKING_LIFT)
+        else:
+            v, f, fg = _strips(pts, gg, zz, np.full(len(pts), MARK_W / 2.0), MARKING_LIFT, seg_mask=mask)
+        vs.append(v); fs.append(f + off); fgs.append(fg); off += len(v)
+    V = np.vstack(vs); F = np.vstack(fs); FG = np.concatenate(fgs)
+    order = np.argsort(FG, kind="stable")
+    F, FG = F[order], FG[order]
+    used = np.unique(FG)
+    remap = -np.ones(len(lanes), dtype=np.int64); remap[used] = np.arange(len(used))
+    cen = np.zeros((len(lanes), 2)); np.add.at(cen, cg, C)
+    cen /= np.maximum(np.bincount(cg, minlength=len(lanes)), 1)[:, None]
+    parts["marking"].append(_part("marking", V, F, remap[FG], len(used),
+                                  [edges[lane_edge[k]].id for k in used], ["marking"] * len(used),
+                                  [edges[lane_edge[k]].orig_ids for k in used], cen[used]))

@@ -1,0 +1,134 @@
+"""SUMO network from OSM with netconvert (from the eclipse-sumo wheel, never a system SUMO).
+
+Options: SUMO's OSM typemaps for cars and pedestrians, guessed sidewalks and crossings,
+guessed and joined traffic lights (actuated), guessed ramps, joined junction clusters,
+simplified geometry, street names and OSM ids kept (``origId`` params). Heights do not come
+from OSM ``ele`` tags (sparse tags give spiky junctions): the network is 2D and the world's
+ground model (``netgen.terrain``) gives every z.
+"""
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .errors import BuildError, DataError
+
+
+def sumo_home() -> Path:
+    import sumo  # the eclipse-sumo wheel
+
+    return Path(sumo.SUMO_HOME)
+
+
+def sumo_binary(name: str) -> str:
+    p = sumo_home() / "bin" / name
+    if not p.exists():
+        raise BuildError(f"SUMO binary {name} not found in the eclipse-sumo wheel ({p})")
+    return str(p)
+
+
+def sumo_env() -> dict:
+    env = dict(os.environ)
+    env["SUMO_HOME"] = str(sumo_home())
+    return env
+
+
+NETCONVERT_VERSION_TAG = "netconvert-opts-v1"
+
+
+def netconvert_args(osm_xml: Path, out_net: Path, proj: str, geo_boundary=None) -> list[str]:
+    tm = sumo_home() / "data" / "typemap"
+    args = [
+        sumo_binary("netconvert"),
+        "--osm-files", str(osm_xml),
+        "--type-files", f"{tm / 'osmNetconvert.typ.xml'},{tm / 'osmNetconvertPedestrians.typ.xml'}",
+        "--proj", proj, "--offset.disable-normalization", "true",
+        "--sidewalks.guess", "true", "--crossings.guess", "true",
+        "--tls.guess-signals", "true", "--tls.join", "true", "--tls.default-type", "actuated",
+        "--ramps.guess", "true", "--junctions.join", "true", "--geometry.remove", "true",
+        "--roundabouts.guess", "true", "--remove-edges.isolated", "true",
+        "--output.street-names", "true", "--output.original-names", "true",
+        "--junctions.corner-detail", "5", "--rectangular-lane-cut", "false",
+        "--osm.elevation", "false",
+        "--no-warnings", "false", "--aggregate-warnings", "5",
+        "-o", str(out_net),
+    ]
+    if geo_boundary is not None:
+        s, w, n, e = geo_boundary
+        args += ["--keep-edges.in-geo-boundary", f"{w:.7f},{s:.7f},{e:.7f},{n:.7f}"]
+    return args
+
+
+_NUM = re.compile(r"-?\d+(\.\d+)?")
+_QUOTED = re.compile(r"'[^']*'")
+
+
+def summarize_warnings(stderr: str, top: int = 8) -> dict:
+    """Group netconvert's warnings by their message template, largest groups first."""
+    groups: Counter = Counter()
+    for line in stderr.splitlines():
+        line = line.strip()
+        if not line.startswith("Warning:"):
+            continue
+        msg = line[len("Warning:"):].strip()
+        m = re.match(r"(\d+) total messages of type: (.*)", msg)
+        if m:  # netconvert's own aggregation line: its count includes the shown examples
+            groups[m.group(2).strip()] = max(groups[m.group(2).strip()], int(m.group(1)))
+            continue
+        key = _NUM.sub("%", _QUOTED.sub("'%'", msg))
+        groups[key] += 1
+    total = sum(groups.values())
+    return {"total": total, "kinds": len(groups),
+            "top": [{"count": c, "message": k} for k, c in groups.most_common(top)]}
+
+
+@dataclass
+class NetResult:
+    net_file: Path
+    warnings: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+def start_netconvert(osm_xml: Path, out_net: Path, proj: str, geo_boundary=None, log: Path | None = None):
+    """Start netconvert in the background (the caller works on other layers meanwhile)."""
+    out_net.parent.mkdir(parents=True, exist_ok=True)
+    errf = open(log or (out_net.parent / "netconvert.log"), "w+")
+    args = netconvert_args(osm_xml, out_net, proj, geo_boundary)
+    try:
+        proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=errf, env=sumo_env())
+    except OSError as e:
+        errf.close()
+        raise BuildError(f"cannot start netconvert: {e}") from None
+    return proc, errf
+
+
+def finish_netconvert(proc, errf, out_net: Path) -> dict:
+    rc = proc.wait()
+    errf.seek(0)
+    stderr = errf.read()
+    errf.close()
+    errors = [l.strip()[len("Error:"):].strip() for l in stderr.splitlines() if l.strip().startswith("Error:")]
+    if rc != 0 or not out_net.exists():
+        joined = " | ".join(errors[:3]) or f"exit code {rc}"
+        if any("No nodes loaded" in e or "No edges" in e or "empty" in e.lower() for e in errors):
+            raise DataError(f"no roads in the area: netconvert found nothing to build ({joined})")
+        raise BuildError(f"netconvert failed: {joined}")
+    return summarize_warnings(stderr)
+
+
+def netconvert_available() -> bool:
+    try:
+        sumo_binary("netconvert")
+        return True
+    except BuildError:
+        return False
+
+
+def copy_net(src: Path, dst: Path) -> None:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src, dst)

@@ -1,0 +1,122 @@
+"""Terrain: a regular height grid sampled (bilinearly) from the elevation source.
+
+One grid covers the whole world window, so chunks cut from it share their border samples
+exactly (seamless). Under roads the grid is levelled to the road surface (a few cm below it)
+and blended back into the natural terrain over a short distance, so the car neither falls
+through the road nor meets a bump at its edge.
+
+On disk, chunk (i, j) is ``terrain/<i>_<j>.npy``: float32 ``z[row, col]`` at
+``x = xmin + col * spacing``, ``y = ymin + row * spacing`` (row 0 is the southern edge), with
+(xmin, ymin) the chunk's lower-left corner; both edges are included, so a 1000 m chunk at 5 m
+spacing is 201 x 201 samples and neighbours repeat their shared edge.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+ROAD_SINK_M = 0.08       # terrain under a road sits this far below the road surface
+
+
+@dataclass
+class TerrainGrid:
+    xmin: float
+    ymin: float
+    spacing: float
+    z: np.ndarray            # (ny, nx), row = y index
+
+    @property
+    def shape(self):
+        return self.z.shape
+
+    @property
+    def xmax(self):
+        return self.xmin + (self.z.shape[1] - 1) * self.spacing
+
+    @property
+    def ymax(self):
+        return self.ymin + (self.z.shape[0] - 1) * self.spacing
+
+    def nodes(self):
+        ny, nx = self.z.shape
+        xs = self.xmin + np.arange(nx) * self.spacing
+        ys = self.ymin + np.arange(ny) * self.spacing
+        return np.meshgrid(xs, ys)
+
+    def sample(self, x, y) -> np.ndarray:
+        """Bilinear height at world x/y (arrays); clamped at the grid's border."""
+        x = np.asarray(x, dtype=float)
+        y = np.asarray(y, dtype=float)
+        ny, nx = self.z.shape
+        fx = np.clip((x - self.xmin) / self.spacing, 0.0, nx - 1.000001)
+        fy = np.clip((y - self.ymin) / self.spacing, 0.0, ny - 1.000001)
+        c = np.floor(fx).astype(np.int64)
+        r = np.floor(fy).astype(np.int64)
+        tx = fx - c
+        ty = fy - r
+        z = self.z
+        z00 = z[r, c]
+        z01 = z[r, c + 1]
+        z10 = z[r + 1, c]
+        z11 = z[r + 1, c + 1]
+        return (z00 * (1 - tx) * (1 - ty) + z01 * tx * (1 - ty) + z10 * (1 - tx) * ty + z11 * tx * ty)
+
+    __call__ = sample
+
+    def cut(self, bounds) -> np.ndarray:
+        """The sub-grid covering chunk bounds (both edges included)."""
+        xmin, ymin, xmax, ymax = bounds
+        c0 = int(round((xmin - self.xmin) / self.spacing))
+        r0 = int(round((ymin - self.ymin) / self.spacing))
+        c1 = int(round((xmax - self.xmin) / self.spacing))
+        r1 = int(round((ymax - self.ymin) / self.spacing))
+        return self.z[r0:r1 + 1, c0:c1 + 1]
+
+
+def sample_grid(frame, elevation, extent, spacing: float) -> TerrainGrid:
+    """Sample the elevation source on a grid covering `extent` (xmin, ymin, xmax, ymax)."""
+    xmin, ymin, xmax, ymax = extent
+    nx = int(round((xmax - xmin) / spacing)) + 1
+    ny = int(round((ymax - ymin) / spacing)) + 1
+    xs = xmin + np.arange(nx) * spacing
+    ys = ymin + np.arange(ny) * spacing
+    X, Y = np.meshgrid(xs, ys)
+    lon, lat = frame.to_lonlat(X.ravel(), Y.ravel())
+    z = np.asarray(elevation.sample(lon, lat), dtype=float).reshape(ny, nx)
+    return TerrainGrid(xmin=xmin, ymin=ymin, spacing=spacing, z=z)
+
+
+def level_under_roads(grid: TerrainGrid, pts: np.ndarray, halfwidth: np.ndarray,
+                      blend_m: float | None = None) -> dict:
+    """Level the grid to the road surface.
+
+    `pts` (n, 3) are dense road-surface points (x, y, z) and `halfwidth` (n,) the distance
+    from each point within which the ground is the road. Grid nodes within that distance
+    (plus half a grid cell, so the bilinear surface is flat across the road) take the road
+    height minus ROAD_SINK_M; nodes within `blend_m` beyond that blend linearly back to the
+    natural ground.
+    """
+    if len(pts) == 0:
+        return {"levelled_nodes": 0, "blended_nodes": 0, "max_change_m": 0.0}
+    sp = grid.spacing
+    blend_m = 2.0 * sp if blend_m is None else blend_m
+    X, Y = grid.nodes()
+    q = np.column_stack([X.ravel(), Y.ravel()])
+    tree = cKDTree(pts[:, :2])
+    reach = float(halfwidth.max()) + 0.75 * sp + blend_m
+    d, idx = tree.query(q, k=1, distance_upper_bound=reach)
+    hit = np.isfinite(d)
+    z = grid.z.ravel().copy()
+    z0 = z.copy()
+    hi = np.nonzero(hit)[0]
+    di = d[hi]
+    ii = idx[hi]
+    inner = halfwidth[ii] + 0.75 * sp
+    road_z = pts[ii, 2] - ROAD_SINK_M
+    w = np.clip(1.0 - (di - inner) / blend_m, 0.0, 1.0)     # 1 on the road, 0 beyond the blend
+    z[hi] = w * road_z + (1.0 - w) * z0[hi]
+    grid.z = z.reshape(grid.z.shape)
+    return {"levelled_nodes": int(np.sum(w >= 1.0)), "blended_nodes": int(np.sum((w > 0) & (w < 1))),
+            "max_change_m": float(np.max(np.abs(z - z0))) if len(z) else 0.0}
