@@ -1,0 +1,509 @@
+"""Buildings: OSM footprints extruded to solid blocks standing on the terrain.
+
+Height
+------
+:func:`building_height` takes, in this order:
+
+1. ``height`` (metres; "12", "12 m", "12.5m", "12,5", "40'", "40 ft", "40'6\\"", "12;15" -> the
+   first valid value; feet converted), when it is a plausible number (0 < h < 1000 m);
+2. ``building:levels`` x 3.0 m, plus the roof: ``roof:height`` if given, else ``roof:levels``
+   x 3.0 m (OSM's ``height`` is to the top of the roof, so a block built from levels is
+   too);
+3. a default, by building type and, for unspecified types, by footprint size.
+
+Why these defaults: the seed's 3 m (10 ft) is one storey, a garden shed; a typical European
+urban building is 3-5 storeys, a Nordic suburb is mostly one- or two-storey houses with
+sheds, saunas and garages beside them. The type says which, when it is there
+(``shed``/``garage``/``kiosk``... 3 m, ``house``/``detached``... 6 m, ``terrace`` 7 m,
+halls (``industrial``/``warehouse``/``retail``...) 8 m, ``church`` 12 m, ``apartments``/
+``office``/``commercial``/``hotel``/``public``... 15 m = 5 storeys). Most buildings are
+``building=yes`` (or ``residential``), and there the footprint is the best cue we have:
+under 60 m2 it is an outbuilding (3 m), under 300 m2 a house (6 m), above that a block of
+4 storeys (12 m, the middle of the 3-5 storey range). Measured on the Kouvola extract, this
+puts its ``yes`` sheds (median 37 m2) at 3 m and its ``residential`` houses (median 170 m2)
+at 6 m instead of making the whole suburb either sheds or blocks.
+
+``building=roof`` (a canopy, e.g. over fuel pumps) is a 0.5 m slab at the top of its height
+(default 5 m) so that cars can drive under it, unless ``min_height`` says otherwise; likewise
+``min_height`` / ``building:min_level`` (x 3 m) lift the underside of any building.
+
+Placement
+---------
+Each building goes to exactly one chunk: the one holding its footprint's representative
+point (``point_on_surface``; chunk intervals are half-open). Its base is the lowest terrain
+under the footprint: ``ground`` is sampled at every vertex, along the outline every <= 2 m and
+on a 2 m grid inside (coarser for huge footprints, at most ~4000 points), and the base is the
+minimum less ``sink_m`` (0.1 m), which hides what a 2 m sampling can miss, so nothing floats.
+The solid spans ``base_z + min_height`` .. ``base_z + height``.
+
+Footprints are repaired with ``shapely.make_valid`` (polygonal parts kept); parts and
+buildings under 2 m2 are dropped and counted. Buildings mapped as a node get a placeholder
+box by type (8 x 8 m house, 3 x 6 m garage...), ``placeholder: true`` in their record.
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import shapely
+import trimesh
+from mapbox_earcut import triangulate_float64
+from shapely.geometry import Polygon, box
+from trimesh.visual.material import PBRMaterial
+
+from ._atomic import atomic_path, write_text
+from .errors import BuildError
+from .osm_features import OSMFeatures, polygonal
+
+LEVEL_HEIGHT_M = 3.0
+MIN_AREA_M2 = 2.0
+ROOF_SLAB_M = 0.5
+SAMPLE_STEP_M = 2.0
+MAX_SAMPLES = 4000
+
+_SMALL = {"shed", "garage", "garages", "carport", "hut", "cabin", "kiosk", "toilets", "sauna",
+          "container", "bunker", "allotment_house", "shelter", "greenhouse", "glasshouse",
+          "gatehouse", "boathouse", "pavilion", "static_caravan", "service", "hangar_small",
+          "bicycle_shed", "outbuilding"}
+_HOUSE = {"house", "detached", "semidetached_house", "bungalow", "villa", "farm", "cottage",
+          "chalet"}
+_HALL = {"industrial", "warehouse", "manufacture", "factory", "hangar", "barn", "stable",
+         "cowshed", "farm_auxiliary", "retail", "supermarket", "sports_hall", "storage_tank",
+         "transportation", "parking"}
+_BLOCK = {"apartments", "commercial", "office", "hotel", "public", "civic", "government",
+          "school", "university", "college", "hospital", "dormitory", "block", "train_station",
+          "kindergarten", "museum", "courthouse", "fire_station", "townhall", "stadium"}
+DEFAULT_HEIGHT_BY_TYPE = {
+    **{k: 3.0 for k in _SMALL}, **{k: 6.0 for k in _HOUSE}, "terrace": 7.0,
+    **{k: 8.0 for k in _HALL}, **{k: 15.0 for k in _BLOCK}, "kindergarten": 4.0,
+    "church": 12.0, "chapel": 6.0, "mosque": 12.0, "temple": 10.0, "synagogue": 12.0,
+    "cathedral": 25.0, "tower": 20.0, "roof": 5.0,
+}
+#: unspecified types ("yes", "residential", anything unknown): by footprint area (m2)
+DEFAULT_HEIGHT_BY_AREA = ((60.0, 3.0), (300.0, 6.0), (math.inf, 12.0))
+DEFAULT_HEIGHT_M = 12.0    # unspecified type, footprint unknown
+#: placeholder footprint (width, depth) in metres for buildings mapped as a node
+NODE_FOOTPRINT = {"house": (8, 8), "detached": (8, 8), "semidetached_house": (12, 8),
+                  "garage": (3, 6), "shed": (3, 3), "kiosk": (3, 3), "hut": (4, 4),
+                  "cabin": (5, 5), "toilets": (3, 3), "roof": (6, 6), "sauna": (4, 4)}
+NODE_FOOTPRINT_DEFAULT = (10, 10)
+
+COLOURS = {  # RGBA by building type group, for the GLB
+    "small": (170, 150, 130, 255), "house": (225, 205, 170, 255), "hall": (185, 185, 190, 255),
+    "block": (210, 200, 185, 255), "church": (230, 225, 210, 255), "roof": (120, 120, 125, 255),
+    "other": (200, 195, 188, 255),
+}
+
+_LEN_RE = re.compile(
+    r"""^\s*(?P<num>[+-]?\d+(?:[.,]\d+)?|[+-]?[.,]\d+)\s*
+        (?P<unit>m|meters?|metres?|ft|feet|foot|'|’|′)?\s*
+        (?:(?P<inch>\d+(?:\.\d+)?)\s*(?:"|”|″|in|inch|inches))?\s*$""",
+    re.IGNORECASE | re.VERBOSE)
+
+
+def parse_length(value) -> float | None:
+    """A length tag in metres ("12", "12 m", "12.5m", "40'", "40 ft", "40'6\\"", "12;15"), or None.
+
+    With several values separated by ';' the first valid one is taken. Feet (and inches)
+    are converted; a comma decimal separator ("12,5") is accepted.
+    """
+    if value is None:
+        return None
+    for part in str(value).split(";"):
+        m = _LEN_RE.match(part)
+        if not m:
+            continue
+        num = float(m.group("num").replace(",", "."))
+        unit = (m.group("unit") or "m").lower()
+        if unit in ("ft", "feet", "foot", "'", "’", "′"):
+            num = num * 0.3048 + (float(m.group("inch")) * 0.0254 if m.group("inch") else 0.0)
+        elif m.group("inch"):
+            continue            # "12 m 6 in" is not a thing
+        if math.isfinite(num):
+            return num
+    return None
+
+
+def parse_levels(value) -> float | None:
+    """building:levels-like tag -> a number of storeys (first valid of "a;b"), or None."""
+    if value is None:
+        return None
+    for part in str(value).split(";"):
+        try:
+            v = float(part.strip().replace(",", "."))
+        except ValueError:
+            continue
+        if math.isfinite(v) and 0.0 <= v < 200.0:
+            return v
+    return None
+
+
+def _group(kind: str) -> str:
+    if kind in _SMALL:
+        return "small"
+    if kind in _HOUSE or kind == "terrace":
+        return "house"
+    if kind in _HALL:
+        return "hall"
+    if kind in _BLOCK:
+        return "block"
+    if kind in ("church", "chapel", "cathedral", "mosque", "temple", "synagogue"):
+        return "church"
+    if kind == "roof":
+        return "roof"
+    return "other"
+
+
+def default_height(kind: str | None, footprint_area_m2: float | None = None) -> float:
+    """The documented default height for a building type (see the module docstring)."""
+    if kind in DEFAULT_HEIGHT_BY_TYPE:
+        return DEFAULT_HEIGHT_BY_TYPE[kind]
+    if footprint_area_m2 is None:
+        return DEFAULT_HEIGHT_M
+    for limit, h in DEFAULT_HEIGHT_BY_AREA:
+        if footprint_area_m2 < limit:
+            return h
+    return DEFAULT_HEIGHT_M
+
+
+def building_height(tags, footprint_area_m2: float | None = None) -> tuple[float, str]:
+    """(height in metres, source) with source "height", "building:levels" or "default"."""
+    h = parse_length(tags.get("height"))
+    if h is not None and 0.0 < h < 1000.0:
+        return h, "height"
+    lv = parse_levels(tags.get("building:levels"))
+    if lv is not None and lv > 0:
+        roof = parse_length(tags.get("roof:height"))
+        if roof is None or not 0.0 <= roof < 100.0:
+            rl = parse_levels(tags.get("roof:levels"))
+            roof = (rl or 0.0) * LEVEL_HEIGHT_M
+        return lv * LEVEL_HEIGHT_M + roof, "building:levels"
+    return default_height(tags.get("building"), footprint_area_m2), "default"
+
+
+def building_min_height(tags, height: float) -> float:
+    """Height of the underside above the base: min_height, building:min_level x 3 m, a roof
+    slab, else 0. Always below ``height`` (an inconsistent min_height is ignored)."""
+    mh = parse_length(tags.get("min_height"))
+    if mh is None:
+        ml = parse_levels(tags.get("building:min_level"))
+        mh = ml * LEVEL_HEIGHT_M if ml is not None else None
+    if mh is None and tags.get("building") == "roof":
+        mh = height - ROOF_SLAB_M
+    if mh is None or not 0.0 <= mh < height - 0.1:
+        return 0.0
+    return float(mh)
+
+
+# ------------------------------------------------------------------------------------------
+@dataclass
+class ChunkBuildings:
+    """One chunk's buildings: a scene (one node per building, named by OSM id), one merged
+    mesh for physics, the records, and counts."""
+    bounds: tuple
+    scene: trimesh.Scene
+    mesh: trimesh.Trimesh | None
+    records: list = field(default_factory=list)
+    footprints: dict = field(default_factory=dict)    # id -> shapely geometry (world m)
+    stats: dict = field(default_factory=dict)
+
+
+def _footprints(features: OSMFeatures):
+    """[(id, geometry, tags, placeholder)] with repaired geometry, and drop counts."""
+    out, stats = [], {"slivers_dropped": 0, "parts_dropped": 0, "repaired": 0, "placeholders": 0}
+    for f in features.buildings:
+        g = f.geometry
+        if isinstance(g, Polygon) and g.area >= MIN_AREA_M2 and g.is_valid:   # the usual case
+            out.append((f.id, g, f.tags, False))
+            continue
+        if not g.is_valid:
+            stats["repaired"] += 1
+        full = polygonal(g)
+        kept = polygonal(g, MIN_AREA_M2)
+        if kept is None:
+            stats["slivers_dropped"] += 1
+            continue
+        stats["parts_dropped"] += len(shapely.get_parts(full)) - len(shapely.get_parts(kept))
+        out.append((f.id, kept, f.tags, False))
+    bn = features.building_nodes
+    for i, ident in enumerate(bn.ids):
+        kind = bn.tags[i].get("building", "yes")
+        w, d = NODE_FOOTPRINT.get(kind, NODE_FOOTPRINT_DEFAULT)
+        x, y = bn.xy[i]
+        out.append((ident, box(x - w / 2, y - d / 2, x + w / 2, y + d / 2), bn.tags[i], True))
+        stats["placeholders"] += 1
+    return out, stats
+
+
+def footprint_union(features: OSMFeatures):
+    """Union of all building footprints (repaired; node placeholders included): the
+    ``building_area`` that scenery keeps trees and benches out of."""
+    fps, _ = _footprints(features)
+    if not fps:
+        return Polygon()
+    return shapely.union_all([g for _, g, _, _ in fps])
+
+
+def _base_heights(geoms, ground, sink_m: float) -> np.ndarray:
+    """Lowest ground under each footprint (vertices, outline every <= 2 m, 2 m inner grid)."""
+    n = len(geoms)
+    if n == 0:
+        return np.zeros(0)
+    areas = shapely.area(geoms)
+    step = np.maximum(SAMPLE_STEP_M, np.sqrt(areas / MAX_SAMPLES))
+    outline = shapely.segmentize(geoms, step)
+    xy, idx = shapely.get_coordinates(outline, return_index=True)
+    # an inner grid per footprint, all footprints at once
+    b = shapely.bounds(geoms)
+    nx = np.maximum(np.floor((b[:, 2] - b[:, 0]) / step), 0).astype(np.int64) + 1
+    ny = np.maximum(np.floor((b[:, 3] - b[:, 1]) / step), 0).astype(np.int64) + 1
+    cnt = nx * ny
+    gid = np.repeat(np.arange(n), cnt)
+    k = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    # centre the grid in the bounding box
+    ox = b[:, 0] + 0.5 * ((b[:, 2] - b[:, 0]) - (nx - 1) * step)
+    oy = b[:, 1] + 0.5 * ((b[:, 3] - b[:, 1]) - (ny - 1) * step)
+    gx = ox[gid] + (k % nx[gid]) * step[gid]
+    gy = oy[gid] + (k // nx[gid]) * step[gid]
+    shapely.prepare(geoms)
+    inside = shapely.contains_xy(geoms[gid], gx, gy)
+    xs, ys, ids = [xy[:, 0], gx[inside]], [xy[:, 1], gy[inside]], [idx, gid[inside]]
+    x, y, ids = np.concatenate(xs), np.concatenate(ys), np.concatenate(ids)
+    z = np.asarray(ground(x, y), dtype=float).reshape(-1)
+    if z.shape != x.shape or not np.all(np.isfinite(z)):
+        raise BuildError("ground() returned no height for some building footprints")
+    base = np.full(n, np.inf)
+    np.minimum.at(base, ids, z)
+    return base - sink_m
+
+
+def extrude_footprints(geoms, z0, z1):
+    """Extrude many footprints at once: solids from z0[i] to z1[i] over footprint geoms[i].
+
+    Returns ``(vertices (V, 3), faces (F, 3), vstart (n+1,), fstart (n+1,))``: footprint i owns
+    vertices ``vstart[i]:vstart[i+1]`` and faces ``fstart[i]:fstart[i+1]`` (global indices).
+    Roof and floor are each polygon triangulated by earcut (mapbox-earcut, trimesh's polygon
+    engine, which adds no vertices, so holes are kept as they are); the walls join each ring
+    edge's floor and roof vertices, so every solid is watertight and outward-facing by
+    construction (rings re-oriented: exterior counter-clockwise, holes clockwise). A polygon
+    whose exterior has fewer than 3 distinct points contributes nothing.
+    """
+    geoms = np.asarray(geoms, dtype=object)
+    nb = len(geoms)
+    z0 = np.broadcast_to(np.asarray(z0, dtype=float), (nb,))
+    z1 = np.broadcast_to(np.asarray(z1, dtype=float), (nb,))
+    polys, bld = shapely.get_parts(geoms, return_index=True)
+    rings, poly_of_ring = shapely.get_rings(polys, return_index=True)
+    xy, ring_of = shapely.get_coordinates(rings, return_index=True)
+    if not len(xy):
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(nb + 1, np.int64), np.zeros(nb + 1, np.int64)
+    nr = len(rings)
+    # drop each ring's closing point and repeated consecutive points
+    first = np.r_[True, ring_of[1:] != ring_of[:-1]]
+    last = np.r_[ring_of[1:] != ring_of[:-1], True]
+    keep = ~last
+    same_prev = np.r_[False, np.all(xy[1:] == xy[:-1], axis=1)] & ~first
+    keep &= ~same_prev
+    xy, ring_of = xy[keep], ring_of[keep]
+    cnt = np.bincount(ring_of, minlength=nr)
+    rstart = np.cumsum(cnt) - cnt
+    # ring orientation (shoelace), reverse where needed
+    nxt = np.arange(len(xy)) + 1
+    rend = rstart + cnt
+    ok_ring = cnt >= 3
+    nxt[rend[ok_ring] - 1] = rstart[ok_ring]
+    nxt = np.minimum(nxt, len(xy) - 1)
+    cross = xy[:, 0] * xy[nxt, 1] - xy[nxt, 0] * xy[:, 1]
+    area2 = np.bincount(ring_of, weights=cross, minlength=nr)
+    is_ext = np.r_[True, poly_of_ring[1:] != poly_of_ring[:-1]]
+    flip = (area2 > 0) != is_ext
+    pos = np.arange(len(xy)) - rstart[ring_of]
+    src = np.where(flip[ring_of], rstart[ring_of] + cnt[ring_of] - 1 - pos, np.arange(len(xy)))
+    xy = xy[src]
+    # drop degenerate rings, and polygons whose exterior is degenerate
+    poly_ok = np.ones(len(polys), bool)
+    poly_ok[poly_of_ring[is_ext & ~ok_ring]] = False
+    rk = ok_ring & poly_ok[poly_of_ring]
+    ptk = rk[ring_of]
+    xy, ring_of = xy[ptk], ring_of[ptk]
+    cnt = np.where(rk, cnt, 0)
+    rstart = np.cumsum(cnt) - cnt
+    # per polygon: its points are contiguous (rings of a polygon are contiguous)
+    npoly = len(polys)
+    pcnt = np.bincount(poly_of_ring, weights=cnt, minlength=npoly).astype(np.int64)
+    pstart = np.cumsum(pcnt) - pcnt            # into xy
+    vbase = 2 * pstart                          # floor at vbase + i, roof at vbase + n + i
+    # walls, all at once
+    gi = np.arange(len(xy))
+    p_of_pt = poly_of_ring[ring_of]
+    gj = gi + 1
+    re_ = rstart + cnt
+    gj[re_[rk] - 1] = rstart[rk]
+    li, lj = gi - pstart[p_of_pt], gj - pstart[p_of_pt]
+    vb, n_p = vbase[p_of_pt], pcnt[p_of_pt]
+    walls = np.concatenate([np.column_stack([vb + li, vb + lj, vb + n_p + lj]),
+                            np.column_stack([vb + li, vb + n_p + lj, vb + n_p + li])])
+    wall_poly = np.concatenate([p_of_pt, p_of_pt])
+    # roofs and floors: earcut per polygon
+    tris, tri_poly = [], []
+    ring_ends_all = rstart + cnt
+    for p in np.flatnonzero(pcnt >= 3):
+        a, n = pstart[p], pcnt[p]
+        rs = np.flatnonzero((poly_of_ring == p) & rk)
+        ends = (ring_ends_all[rs] - a).astype(np.uint32)
+        t = triangulate_float64(xy[a:a + n], ends).reshape(-1, 3).astype(np.int64)
+        if len(t):
+            tris.append(t + a)
+            tri_poly.append(np.full(len(t), p))
+    if tris:
+        t = np.concatenate(tris)
+        tp = np.concatenate(tri_poly)
+        e1, e2 = xy[t[:, 1]] - xy[t[:, 0]], xy[t[:, 2]] - xy[t[:, 0]]
+        up = (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) >= 0
+        t = np.where(up[:, None], t, t[:, ::-1])
+        loc = t - pstart[tp][:, None]
+        vb_t, n_t = vbase[tp][:, None], pcnt[tp][:, None]
+        floor = (vb_t + loc)[:, ::-1]
+        roof = vb_t + n_t + loc
+    else:
+        floor = roof = np.zeros((0, 3), np.int64)
+        tp = np.zeros(0, np.int64)
+    faces = np.concatenate([floor, roof, walls])
+    fpoly = np.concatenate([tp, tp, wall_poly])
+    order = np.argsort(fpoly, kind="stable")
+    faces, fpoly = faces[order], fpoly[order]
+    # vertices: per polygon floor block then roof block
+    V = np.empty((2 * len(xy), 3))
+    zb0, zb1 = z0[bld], z1[bld]
+    fl = vbase[p_of_pt] + (gi - pstart[p_of_pt])
+    V[fl, :2] = xy
+    V[fl, 2] = zb0[p_of_pt]
+    V[fl + pcnt[p_of_pt], :2] = xy
+    V[fl + pcnt[p_of_pt], 2] = zb1[p_of_pt]
+    # per footprint ranges
+    vcount = np.bincount(bld, weights=2 * pcnt, minlength=nb).astype(np.int64)
+    fcount = np.bincount(bld[fpoly], minlength=nb) if len(fpoly) else np.zeros(nb, np.int64)
+    vstart = np.r_[0, np.cumsum(vcount)]
+    fstart = np.r_[0, np.cumsum(fcount)]
+    return V, faces, vstart, fstart
+
+
+def prism_arrays(geom, z0: float, z1: float) -> tuple[np.ndarray, np.ndarray]:
+    """One footprint extruded from z0 to z1: (vertices, faces) with local indices."""
+    V, F, vs, fs = extrude_footprints([geom], [z0], [z1])
+    if not len(F):
+        raise ValueError("footprint has no ring with 3 distinct points")
+    return V, F
+
+
+def chunk_index(px, py, chunk_bounds_list) -> np.ndarray:
+    """Index into chunk_bounds_list of the chunk holding each point (half-open), or -1."""
+    out = np.full(len(px), -1)
+    for k, (x0, y0, x1, y1) in enumerate(chunk_bounds_list):
+        m = (out < 0) & (px >= x0) & (px < x1) & (py >= y0) & (py < y1)
+        out[m] = k
+    return out
+
+
+def make_buildings(features: OSMFeatures, ground, chunk_bounds_list, sink_m: float = 0.1
+                   ) -> list[ChunkBuildings]:
+    """Extrude every building onto the terrain and sort them into chunks.
+
+    ``ground(x_array, y_array) -> z_array`` is the terrain height (vectorised);
+    ``chunk_bounds_list`` a list of (xmin, ymin, xmax, ymax). Returns one
+    :class:`ChunkBuildings` per chunk, in the same order. Buildings whose representative
+    point is in no chunk are left out.
+    """
+    chunk_bounds_list = [tuple(map(float, b)) for b in chunk_bounds_list]
+    fps, stats = _footprints(features)
+    results = [ChunkBuildings(bounds=b, scene=trimesh.Scene(), mesh=None,
+                              stats={"buildings": 0}) for b in chunk_bounds_list]
+    if not fps:
+        for r in results:
+            r.stats.update(stats)
+        return results
+    geoms = np.array([g for _, g, _, _ in fps], dtype=object)
+    rp = shapely.get_coordinates(shapely.point_on_surface(geoms))
+    chunk = chunk_index(rp[:, 0], rp[:, 1], chunk_bounds_list)
+    sel = np.flatnonzero(chunk >= 0)
+    base = np.zeros(len(fps))
+    base[sel] = _base_heights(geoms[sel], ground, sink_m)
+    areas = shapely.area(geoms)
+    cent = shapely.get_coordinates(shapely.centroid(geoms))
+    per_chunk = [([], []) for _ in chunk_bounds_list]
+    materials = {k: PBRMaterial(name=f"building_{k}", baseColorFactor=list(c), metallicFactor=0.0,
+                                roughnessFactor=0.9) for k, c in COLOURS.items()}
+    hs = [building_height(fps[i][2], float(areas[i])) for i in sel]
+    mhs = np.array([building_min_height(fps[i][2], h) for i, (h, _) in zip(sel, hs)])
+    hv = np.array([h for h, _ in hs])
+    V, F, vstart, fstart = extrude_footprints(geoms[sel], base[sel] + mhs, base[sel] + hv)
+    for n, i in enumerate(sel):
+        ident, g, tags, placeholder = fps[i]
+        k = int(chunk[i])
+        kind = tags.get("building", "yes")
+        (h, src), mh = hs[n], mhs[n]
+        if fstart[n + 1] == fstart[n]:      # nothing left of a degenerate ring: count it
+            results[k].stats["extrude_failed"] = results[k].stats.get("extrude_failed", 0) + 1
+            continue
+        v = V[vstart[n]:vstart[n + 1]]
+        f = F[fstart[n]:fstart[n + 1]] - vstart[n]
+        mesh = trimesh.Trimesh(v, f, process=False,
+                               visual=trimesh.visual.TextureVisuals(material=materials[_group(kind)]))
+        results[k].scene.add_geometry(mesh, node_name=ident, geom_name=ident)
+        per_chunk[k][0].append(v)
+        per_chunk[k][1].append(f)
+        results[k].footprints[ident] = g
+        results[k].records.append({
+            "id": ident, "kind": kind, "height_m": float(h), "height_source": src,
+            "base_z": float(base[i]), "min_height_m": float(mh),
+            "footprint_area_m2": round(float(areas[i]), 2),
+            "centroid": [round(float(cent[i, 0]), 2), round(float(cent[i, 1]), 2)],
+            "levels": parse_levels(tags.get("building:levels")),
+            "name": tags.get("name"), "placeholder": bool(placeholder),
+        })
+    for k, r in enumerate(results):
+        vs, fs = per_chunk[k]
+        if vs:
+            offs = np.cumsum([0] + [len(v) for v in vs[:-1]])
+            r.mesh = trimesh.Trimesh(np.vstack(vs), np.vstack([f + o for f, o in zip(fs, offs)]),
+                                     process=False)
+        r.stats["buildings"] = len(r.records)
+        # global drop counts are reported with every chunk (they happen before assignment)
+        r.stats.update(stats)
+        r.stats["outside_chunks"] = int((chunk < 0).sum())
+    return results
+
+
+def write_chunk_buildings(result: ChunkBuildings, out_dir) -> dict:
+    """Write buildings.glb (named nodes), buildings.obj (merged) and buildings.json (records).
+
+    Returns {"glb": ..., "obj": ..., "json": ...} with file names relative to ``out_dir``;
+    a chunk without buildings writes only the JSON (an empty list) and maps glb/obj to None.
+    Files are written atomically; a write error is a :class:`BuildError`.
+    """
+    out = Path(out_dir)
+    files = {"glb": None, "obj": None, "json": "buildings.json"}
+    if result.records:
+        with atomic_path(out / "buildings.glb") as tmp:
+            result.scene.export(tmp, file_type="glb")
+        with atomic_path(out / "buildings.obj") as tmp:
+            result.mesh.export(tmp, file_type="obj", include_normals=False, include_color=False,
+                               include_texture=False)
+        files["glb"], files["obj"] = "buildings.glb", "buildings.obj"
+    write_text(out / "buildings.json", json.dumps(
+        {"bounds": list(result.bounds), "buildings": result.records, "stats": _jsonable(result.stats)},
+        indent=1))
+    return files
+
+
+def _jsonable(d: dict) -> dict:
+    return {k: (v if isinstance(v, (int, float, str, list, type(None))) else str(v)) for k, v in d.items()}
+
+
+__all__ = ["building_height", "building_min_height", "default_height", "parse_length",
+           "parse_levels", "make_buildings", "write_chunk_buildings", "footprint_union",
+           "ChunkBuildings", "chunk_index", "extrude_footprints", "LEVEL_HEIGHT_M", "MIN_AREA_M2"]
