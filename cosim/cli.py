@@ -17,10 +17,12 @@ from netgen.errors import CosimError
 class Progress:
     """Progress on stderr: a bar redrawn in place on a terminal, one line per stage otherwise."""
 
-    def __init__(self, stream=sys.stderr, quiet=False):
+    def __init__(self, stream=sys.stderr, quiet=False, verbose=False):
         self.stream = stream
         self.tty = stream.isatty()
-        self.quiet = quiet
+        # off a terminal (scripts, CI) progress is silent unless asked for, so that stderr
+        # holds only errors
+        self.quiet = quiet or not (self.tty or verbose)
         self.last = None
         self.t0 = time.perf_counter()
 
@@ -157,7 +159,7 @@ def cmd_build(a):
     from netgen.build import build_world
 
     cfg = world_config_from_args(a)
-    w = build_world(cfg, progress=Progress(quiet=a.quiet), force=a.force)
+    w = build_world(cfg, progress=Progress(quiet=a.quiet, verbose=a.verbose), force=a.force)
     if a.json:
         print(json.dumps(w, indent=1))
     else:
@@ -179,6 +181,7 @@ def make_parser() -> argparse.ArgumentParser:
     b.add_argument("--force", action="store_true", help="rebuild even if the output is up to date")
     b.add_argument("--json", action="store_true", help="print world.json instead of the report")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    b.add_argument("-v", "--verbose", action="store_true", help="progress lines even when stderr is not a terminal")
     b.set_defaults(func=cmd_build)
     return p
 

@@ -99,13 +99,13 @@ def header_bbox(path: Path):
 def to_osm_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
     """Check `path` and return (OSM XML file netconvert can read, scan info).
 
-    Plain .osm files are used in place; others are converted once into the cache."""
+    Every input is rewritten once into the cache as OSM XML sorted by type and id (pyosmium's
+    MergeInputReader sorts): netconvert reads only XML, and pyosmium's area assembly needs
+    sorted input (extracts edited in JOSM carry negative ids out of order)."""
     path = Path(path).resolve()
     digest = file_hash(path)
     info_cached = None
-    out = path
-    if not path.name.lower().endswith((".osm", ".xml")):
-        out = Path(cache_dir) / "osm" / f"{digest[:24]}.osm"
+    out = Path(cache_dir) / "osm" / f"{digest[:24]}.osm"
     marker = Path(cache_dir) / "osm" / f"{digest[:24]}.scan"
     if marker.exists() and out.exists():
         import json
@@ -117,13 +117,16 @@ def to_osm_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
         info_cached["bbox"] = tuple(info_cached["bbox"])
         return out, info_cached
     info = scan(path)
-    if out != path:
-        with atomic_path(out) as tmp:
-            w = osmium.SimpleWriter(osmium.io.File(str(tmp), "osm"), overwrite=True)
-            try:
-                osmium.apply(str(path), w)
-            finally:
-                w.close()
+    with atomic_path(out) as tmp:
+        w = osmium.SimpleWriter(osmium.io.File(str(tmp), "osm"), overwrite=True)
+        try:
+            r = osmium.MergeInputReader()
+            r.add_file(str(path))
+            r.apply(w)
+        except RuntimeError as e:
+            raise DataError(f"OSM file {path.name} cannot be read ({' '.join(str(e).split())[:150]})") from None
+        finally:
+            w.close()
     import json
     from ._atomic import write_text
     write_text(marker, json.dumps({**info, "sha256": digest}))

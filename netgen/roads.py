@@ -12,7 +12,7 @@ Everything is computed on concatenated arrays of all lanes at once (a city has ~
 per-lane Python would dominate the build).
 
 Mesh classes: ``asphalt`` (vehicle lanes, junctions, crossings), ``sidewalk`` (pedestrian-only
-lanes and walking areas, 2 cm higher) and ``marking`` (lane lines and zebra stripes, visual
+lanes and walking areas, 2 cm higher), ``rail`` (train-only tracks) and ``marking`` (lane lines and zebra stripes, visual
 only, 1.5 cm above the asphalt). Each piece keeps its SUMO id and the OSM way ids.
 """
 from __future__ import annotations
@@ -28,6 +28,8 @@ SIDEWALK_LIFT = 0.02
 MARKING_LIFT = 0.015
 MARK_W = 0.12
 DASH_ON, DASH_OFF = 3.0, 6.0
+#: lanes only trains use are ballast, not asphalt (trams share the street and stay asphalt)
+RAIL_CLASSES = frozenset({"rail", "rail_urban", "rail_electric", "rail_fast", "cable_car", "subway"})
 
 
 @dataclass
@@ -199,6 +201,7 @@ def build_roads(net, ground, step: float = 2.5) -> RoadGeometry:
     cz = np.interp(key, rkey, rz)
     width = np.array([l.width for l in lanes])
     side = np.array([l.pedestrian_only for l in lanes])
+    rail = np.array([bool(l.allowed) and l.allowed <= RAIL_CLASSES for l in lanes])
     drive = np.array([l.drivable for l in lanes])
     hw = width[cg] / 2.0
     ids = [lanes[k].id for k in range(len(lanes))]
@@ -206,8 +209,9 @@ def build_roads(net, ground, step: float = 2.5) -> RoadGeometry:
     cent = np.zeros((len(lanes), 2))
     np.add.at(cent, cg, C)
     cent /= np.maximum(np.bincount(cg, minlength=len(lanes)), 1)[:, None]
-    parts = {"asphalt": [], "sidewalk": [], "marking": []}
-    for kind, mask, lift in (("asphalt", ~side, 0.0), ("sidewalk", side, SIDEWALK_LIFT)):
+    parts = {"asphalt": [], "sidewalk": [], "marking": [], "rail": []}
+    for kind, mask, lift in (("asphalt", ~side & ~rail, 0.0), ("sidewalk", side, SIDEWALK_LIFT),
+                             ("rail", rail, 0.0)):
         sel = np.nonzero(mask)[0]
         if not len(sel):
             continue

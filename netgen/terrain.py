@@ -18,6 +18,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 ROAD_SINK_M = 0.08       # terrain under a road sits this far below the road surface
+INNER_CELLS = 0.75       # nodes this many cells beyond a road's edge are levelled too (flat bilinear surface)
+
+
+def levelling_reach(halfwidth: float, spacing: float) -> float:
+    """Distance from a road point beyond which the terrain is the untouched DEM."""
+    return halfwidth + INNER_CELLS * spacing + spacing
 
 
 @dataclass
@@ -101,11 +107,11 @@ def level_under_roads(grid: TerrainGrid, pts: np.ndarray, halfwidth: np.ndarray,
     if len(pts) == 0:
         return {"levelled_nodes": 0, "blended_nodes": 0, "max_change_m": 0.0}
     sp = grid.spacing
-    blend_m = 2.0 * sp if blend_m is None else blend_m
+    blend_m = sp if blend_m is None else blend_m
     X, Y = grid.nodes()
     q = np.column_stack([X.ravel(), Y.ravel()])
     tree = cKDTree(pts[:, :2])
-    reach = float(halfwidth.max()) + 0.75 * sp + blend_m
+    reach = float(halfwidth.max()) + INNER_CELLS * sp + blend_m
     d, idx = tree.query(q, k=1, distance_upper_bound=reach)
     hit = np.isfinite(d)
     z = grid.z.ravel().copy()
@@ -113,7 +119,7 @@ def level_under_roads(grid: TerrainGrid, pts: np.ndarray, halfwidth: np.ndarray,
     hi = np.nonzero(hit)[0]
     di = d[hi]
     ii = idx[hi]
-    inner = halfwidth[ii] + 0.75 * sp
+    inner = halfwidth[ii] + INNER_CELLS * sp
     road_z = pts[ii, 2] - ROAD_SINK_M
     w = np.clip(1.0 - (di - inner) / blend_m, 0.0, 1.0)     # 1 on the road, 0 beyond the blend
     z[hi] = w * road_z + (1.0 - w) * z0[hi]

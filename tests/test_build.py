@@ -87,60 +87,103 @@ def test_projection_maps_osm_nodes_onto_sumo_junctions(helsinki):
     assert checked > 200
 
 
+def _edge_geometry(net, e):
+    """An edge's full geometry: from-junction centre, its shape points, to-junction centre."""
+    if e.raw_shape is not None and len(e.raw_shape) >= 2:
+        return e.raw_shape
+    fj, tj = net.junctions[e.from_node], net.junctions[e.to_node]
+    return np.array([[fj.x, fj.y], [tj.x, tj.y]])
+
+
 def test_road_lengths_match_geodesic_osm_lengths(helsinki):
-    """An OSM way that became edges with no other way merged in: the edges' full geometry
-    (junction centre to junction centre) is as long as the way's geodesic length, within 1 %."""
+    """For each OSM way built as a chain of its own edges (no other way merged in, no joined
+    junction cluster at either end), the chain runs from the way's first node to its last and
+    its length equals the way's geodesic length (WGS84 ellipsoid) within 1 %."""
     out, w, _ = helsinki
     net = read_net(out / w["net_file"])
-    ways = _ways(REPO / "netgen/presets/helsinki-2019.osm.pbf")
-    by_way: dict = {}
+    nodes_of = {}
+    for o in osmium.FileProcessor(str(REPO / "netgen/presets/helsinki-2019.osm.pbf")).with_locations() \
+            .with_filter(osmium.filter.KeyFilter("highway")):
+        if o.is_way():
+            nodes_of[o.id] = [(n.ref, n.lon, n.lat) for n in o.nodes if n.location.valid()]
+    out_edges: dict = {}
     for e in net.normal_edges():
-        if e.id.startswith("-") or len(e.orig_ids) != 1 or e.from_node.startswith("cluster") \
-                or e.to_node.startswith("cluster"):
+        if len(e.orig_ids) == 1 and not e.id.startswith("-"):
+            out_edges.setdefault((int(e.orig_ids[0]), e.from_node), e)
+    checked, bad, offset = 0, [], 0
+    for wid, nds in nodes_of.items():
+        if len(nds) < 2:
             continue
-        by_way.setdefault(int(e.orig_ids[0]), []).append(e)
-    checked, bad = 0, []
-    for wid, edges in by_way.items():
-        if wid not in ways:
+        first, last = str(nds[0][0]), str(nds[-1][0])
+        cur, length, hops, shifted = first, 0.0, 0, False
+        while cur != last and hops < 200:
+            e = out_edges.get((wid, cur))
+            if e is None or e.to_node.startswith("cluster"):
+                break
+            g = _edge_geometry(net, e)
+            fj, tj = net.junctions[e.from_node], net.junctions[e.to_node]
+            # netconvert may shift a whole edge sideways off its nodes (one-way roads with a
+            # guessed sidewalk on one side): a parallel offset of a curve changes its length
+            shifted |= bool(np.hypot(g[0, 0] - fj.x, g[0, 1] - fj.y) > 0.5 or
+                            np.hypot(g[-1, 0] - tj.x, g[-1, 1] - tj.y) > 0.5)
+            length += float(np.sum(np.hypot(*np.diff(g, axis=0).T)))
+            cur = e.to_node
+            hops += 1
+        if cur != last or hops == 0 or first.startswith("cluster"):
+            continue            # not built as one chain of its own edges (merged, cut, clustered)
+        lon = np.array([n[1] for n in nds])
+        lat = np.array([n[2] for n in nds])
+        geo = GEOD.line_length(lon, lat)
+        if geo < 20:
             continue
-        hw, pts, _ = ways[wid]
-        if len(pts) < 2:
-            continue
-        lon, lat = np.array(pts).T
-        geo_len = GEOD.line_length(lon, lat)
-        if geo_len < 50:
-            continue
-        # the way's edges must cover it whole: their from/to nodes are the way's end nodes
-        net_len = 0.0
-        for e in edges:
-            shape = e.raw_shape if e.raw_shape is not None else None
-            if shape is None:
-                fj, tj = net.junctions[e.from_node], net.junctions[e.to_node]
-                lane = e.lanes[0].shape
-                shape = np.vstack([[fj.x, fj.y], lane, [tj.x, tj.y]])
-            net_len += float(np.sum(np.hypot(*np.diff(shape, axis=0).T)))
-        ratio = net_len / geo_len
-        if 0.5 < ratio < 1.5:      # ways only partly built (cut at the area edge) are skipped
-            checked += 1
-            if abs(ratio - 1.0) > 0.01:
-                bad.append((wid, round(geo_len, 1), round(net_len, 1)))
-    assert checked >= 100, checked
+        checked += 1
+        if abs(length / geo - 1.0) > 0.01:
+            if shifted:
+                offset += 1
+            else:
+                bad.append((wid, round(geo, 2), round(length, 2)))
+    assert checked >= 200, checked
+    # the only exceptions: curved edges netconvert moved sideways off their nodes (Helsinki: 3)
+    assert offset <= 0.02 * checked, f"{offset} of {checked} shifted ways off by more than 1 %"
     assert not bad, f"{len(bad)} of {checked} ways off by more than 1 %: {bad[:5]}"
 
 
 def test_every_drivable_osm_way_is_in_the_network(helsinki):
+    """Every drivable OSM way is an edge (its id in an edge's origId; geometry.remove may merge
+    it with a neighbour, whose origId then lists both), or lies inside a junction that
+    --junctions.join made from the cluster of nodes it connects."""
+    import shapely
+
     out, w, _ = helsinki
     net = read_net(out / w["net_file"])
     represented = set()
     for e in net.normal_edges():
         represented.update(int(x) for x in e.orig_ids)
     ways = _ways(REPO / "netgen/presets/helsinki-2019.osm.pbf")
-    drivable = {wid for wid, (hw, pts, area) in ways.items() if hw in DRIVABLE and not area and len(pts) >= 2}
-    missing = sorted(drivable - represented)
-    assert len(drivable) > 500
-    # every drivable way shows up in some edge's origId (geometry.remove may merge it into a
-    # neighbour's edge, whose origId then lists both)
-    assert not missing, f"{len(missing)} of {len(drivable)} drivable ways missing, e.g. {missing[:10]}"
+    tr = Transformer.from_crs("EPSG:4326", w["projection"]["proj"], always_xy=True)
+    xmin, ymin, xmax, ymax = w["extent_m"]
+    joined = shapely.union_all([shapely.Polygon(j.shape).buffer(0) for j in net.junctions.values()
+                                if j.id.startswith("cluster") and len(j.shape) >= 3])
+    drivable, absorbed, missing = 0, 0, []
+    for wid, (hw, pts, area) in ways.items():
+        if hw not in DRIVABLE or area or len(pts) < 2:
+            continue
+        x, y = tr.transform(*np.array(pts).T)
+        if not (np.all((x > xmin) & (x < xmax) & (y > ymin) & (y < ymax))):
+            continue
+        drivable += 1
+        if wid in represented:
+            continue
+        line = shapely.LineString(np.column_stack([x, y]))
+        inside = line.difference(joined.buffer(2.0)).length < 0.1 * line.length
+        stub = line.length < 25.0 and line.distance(joined) < 3.0     # a short link into a joined junction
+        if inside or stub:
+            absorbed += 1
+            continue
+        missing.append(wid)
+    assert drivable > 500
+    assert absorbed < 0.2 * drivable
+    assert not missing, f"{len(missing)} of {drivable} drivable ways missing, e.g. {missing[:10]}"
 
 
 def test_chunk_terrain_is_seamless_and_levelled_under_roads(helsinki):
@@ -165,37 +208,69 @@ def test_rebuild_reuses_the_world(helsinki):
 
 
 # ---------------------------------------------------------------------------------------
-def _dem_world(tmp_path, osm, dem, center, spacing=10.0):
-    return build_world(WorldConfig(osm=str(osm), dem=[str(dem)], center=center, chunks=0,
+def _dem_world(tmp_path, osm, dem, center, spacing=10.0, chunks=0):
+    return build_world(WorldConfig(osm=str(osm), dem=[str(dem)], center=center, chunks=chunks,
                                    terrain_spacing_m=spacing, out=str(tmp_path / "w"),
                                    cache_dir=str(tmp_path / "cache")))
 
 
-def _check_terrain_against_dem(out: Path, w: dict, dem_path: Path, rng, n=400):
-    from netgen.dem import open_dem
-    from netgen.frame import WorldFrame
+def _check_terrain_against_dem(out: Path, w: dict, dem_path: Path, rng, n=3000):
+    """At random points (not only grid nodes) beyond the levelling reach of every road, the
+    terrain is the DEM's bilinear value within 0.2 m; within it, it follows the road."""
+    from scipy.spatial import cKDTree
 
+    from cosim.world import World
+    from netgen.dem import open_dem
+    from netgen.terrain import levelling_reach
+
+    world = World(out)
     dem = open_dem([str(dem_path)])
-    frame = WorldFrame(w["center"]["lat"], w["center"]["lon"], w["chunk_size_m"])
-    lev = 0
-    checked = 0
-    for c in w["chunks"]:
-        z = np.load(out / c["files"]["terrain"]).astype(float)
-        xmin, ymin = c["bounds_m"][:2]
-        sp = w["terrain"]["spacing_m"]
-        rows = rng.integers(0, z.shape[0], n)
-        cols = rng.integers(0, z.shape[1], n)
-        x = xmin + cols * sp
-        y = ymin + rows * sp
-        lon, lat = frame.to_lonlat(x, y)
-        ref = dem.sample(lon, lat)
-        d = np.abs(z[rows, cols] - ref)
-        # nodes under or beside roads are levelled to the road; everywhere else the terrain is the DEM
-        lev += int(np.sum(d > 0.2))
-        checked += n
-        assert np.median(d) < 0.05
-    assert lev < 0.5 * checked, f"{lev} of {checked} nodes differ from the DEM by > 0.2 m"
-    return lev, checked
+    net = read_net(out / w["net_file"])
+    pts, hw = [], []
+    from netgen.roads import resample_many
+    for e in net.edges.values():
+        for l in e.lanes:
+            if len(l.shape) >= 2:
+                P, _ = resample_many(l.shape, np.zeros(len(l.shape), dtype=np.int64), 1.0)
+                pts.append(P)
+                hw.append(np.full(len(P), l.width / 2))
+    for j in net.junctions.values():
+        if len(j.shape):
+            c = j.shape.mean(axis=0)
+            pts.append(np.vstack([j.shape, [c]]))
+            hw.append(np.concatenate([np.zeros(len(j.shape)), [np.max(np.hypot(*(j.shape - c).T))]]))
+    P = np.vstack(pts)
+    HW = np.concatenate(hw)
+    tree = cKDTree(P)
+    xmin, ymin, xmax, ymax = w["extent_m"]
+    sp = w["terrain"]["spacing_m"]
+    s = w["chunk_size_m"]
+    k = n // 3
+    # half the points are grid nodes (the terrain's own samples), half arbitrary points;
+    # a third of each lies on or within 3 m of a chunk border, where chunks meet
+    nodes = np.zeros(n, dtype=bool)
+    nodes[::2] = True
+    x = rng.uniform(xmin + 1, xmax - 1, n)
+    y = rng.uniform(ymin + 1, ymax - 1, n)
+    x[:k] = np.clip(np.round(x[:k] / s - 0.5) * s + 0.5 * s + rng.uniform(-3, 3, k), xmin + 1, xmax - 1)
+    x[nodes] = np.minimum(xmin + np.round((x[nodes] - xmin) / sp) * sp, xmax - sp)
+    y[nodes] = np.minimum(ymin + np.round((y[nodes] - ymin) / sp) * sp, ymax - sp)
+    # a point is untouched by levelling when it is beyond every road point's own reach
+    reach0 = levelling_reach(0.0, sp)
+    near = tree.query_ball_point(np.column_stack([x, y]), r=reach0 + HW.max())
+    q = np.column_stack([x, y])
+    far = np.array([all(np.hypot(*(P[k] - q[i])) > reach0 + HW[k] for k in ks) for i, ks in enumerate(near)])
+    lon, lat = world.frame.to_lonlat(x[far], y[far])
+    ref = dem.sample(lon, lat)
+    got = world.ground_z(x[far], y[far])
+    err = np.abs(got - ref)
+    on_node = nodes[far]
+    assert on_node.sum() > 100 and (~on_node).sum() > 100, f"only {far.sum()} of {n} points are away from roads"
+    assert err[on_node].max() < 0.2, f"max |terrain - DEM| {err[on_node].max():.3f} m at grid nodes"
+    # between nodes the grid interpolates linearly across the DEM cells' slope kinks
+    assert np.percentile(err[~on_node], 99) < (0.2 if sp <= 2.5 else 0.5), \
+        f"p99 |terrain - DEM| {np.percentile(err[~on_node], 99):.3f} m between grid nodes"
+    return float(err[on_node].max()), float(np.percentile(err[~on_node], 99))
 
 
 def _check_buildings_on_ground(out: Path, w: dict):
@@ -219,7 +294,7 @@ def _check_buildings_on_ground(out: Path, w: dict):
 def test_monaco_with_srtm(tmp_path):
     osm = shared_file("osm/monaco-2022.osm.pbf")
     dem = shared_file("dem/N43E007.hgt")
-    w = _dem_world(tmp_path, osm, dem, (43.7384, 7.4246))
+    w = _dem_world(tmp_path, osm, dem, (43.7384, 7.4246), chunks=1, spacing=2.5)
     out = tmp_path / "w"
     assert w["sources"]["elevation"]["kind"] == "dem"
     assert w["terrain"]["z_range_m"][1] - w["terrain"]["z_range_m"][0] > 50   # steep Monaco
@@ -238,7 +313,7 @@ def test_lauf_with_zipped_srtm(tmp_path):
 def test_portland_with_geotiff_and_voids(tmp_path):
     osm = shared_file("osm/portland-central-2015.osm.pbf")
     dem = shared_file("dem/portland-ned.tif")
-    w = _dem_world(tmp_path / "a", osm, dem, (45.5152, -122.6784))
+    w = _dem_world(tmp_path / "a", osm, dem, (45.5152, -122.6784), spacing=2.5)   # NED is 10 m itself
     _check_terrain_against_dem(tmp_path / "a" / "w", w, dem, np.random.default_rng(3))
     nodata = shared_file("dem/portland-ned-nodata.tif")
     w2 = build_world(WorldConfig(osm=str(osm), dem=[str(nodata)], center=(45.5152, -122.6784), chunks=0,
