@@ -187,8 +187,14 @@ def make_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    import logging
+
     p = make_parser()
     a = p.parse_args(argv)
+    verbose = getattr(a, "verbose", False)
+    # retries and warnings are for a person watching; scripts get only the final error line
+    logging.basicConfig(level=logging.INFO if verbose else (logging.WARNING if sys.stderr.isatty() else logging.ERROR),
+                        format="%(levelname)s: %(message)s")
     if not getattr(a, "func", None):
         p.print_help()
         return 0

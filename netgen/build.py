@@ -122,7 +122,13 @@ def _osm_for(cfg, source, bbox, cache: Path) -> tuple[Path, dict]:
                      retries=cfg.http_retries)
     source["file"] = str(path)
     source["date"] = _dt.date.today().isoformat()
-    return to_osm_xml(Path(path), cache)
+    try:
+        return to_osm_xml(Path(path), cache)
+    except DataError as e:
+        if "has no map data" in str(e):
+            raise DataError(f"no roads in the area {bbox[0]:.5f},{bbox[1]:.5f},{bbox[2]:.5f},{bbox[3]:.5f}: "
+                            "Overpass has no map data there (open sea?)") from None
+        raise
 
 
 # ---------------------------------------------------------------------------------------
