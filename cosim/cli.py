@@ -167,6 +167,84 @@ def cmd_build(a):
     return 0
 
 
+def sim_config_from_args(a):
+    from .config import SimConfig
+
+    if a.scenario:
+        cfg = SimConfig.from_toml(a.scenario)
+        if a.preset or a.osm or a.bbox or a.center or a.world:
+            world_config_from_args(a, base=cfg.world)
+    else:
+        cfg = SimConfig()
+        if not a.world:
+            cfg.world = world_config_from_args(a)
+    if a.world:
+        cfg.world_dir = a.world
+    for k_arg, k_cfg in (("duration", "duration_s"), ("speed", "speed_mps"), ("traffic", "traffic"),
+                         ("seed", "seed"), ("telemetry", "telemetry"), ("sensor_range", "sensor_range_m"),
+                         ("backend", "backend")):
+        v = getattr(a, k_arg)
+        if v is not None:
+            setattr(cfg, k_cfg, v)
+    if a.start:
+        from netgen.frame import parse_latlon
+
+        cfg.start = parse_latlon(a.start, "--start")
+    if a.to:
+        from netgen.frame import parse_latlon
+
+        cfg.goal = parse_latlon(a.to, "--to")
+    if a.gui:
+        cfg.gui = True
+        cfg.realtime = True
+    if a.sumo_gui:
+        cfg.sumo_gui = True
+    if a.respect_speed_limit:
+        cfg.respect_speed_limit = True
+    return cfg.validate()
+
+
+def cmd_run(a):
+    from .sim import Simulation
+
+    cfg = sim_config_from_args(a)
+    prog = Progress(quiet=a.quiet, verbose=a.verbose)
+    sim = Simulation(cfg, progress=prog)
+    tty = sys.stderr.isatty()
+    last = [0.0]
+
+    def on_step(s, ego):
+        if a.quiet or s.t - last[0] < (1.0 if tty else 10.0):
+            return
+        last[0] = s.t
+        v, p = s.mirror.counts()
+        line = (f"t={s.t:6.1f}s  {ego.speed:5.1f} m/s  lat {ego.lat:.6f} lon {ego.lon:.6f}  "
+                f"{v:3d} vehicles {p:3d} persons near  tiles {len(s.physics.tiles):3d}  {s.driver.reason if hasattr(s.driver, 'reason') else ''}")
+        if tty:
+            sys.stderr.write("\r" + line[:150].ljust(150))
+        elif a.verbose:
+            sys.stderr.write(line + "\n")
+        sys.stderr.flush()
+
+    try:
+        sim.setup()
+        info = sim.snap_info
+        print(f"start snapped {info.get('start_snap_m')} m onto lane {info.get('start_lane')}"
+              + (f"; route {info['route_length_m']:.0f} m, ETA {info['eta_s']:.0f} s" if 'route_length_m' in info else ""))
+        summary = sim.run(on_step=on_step)
+    finally:
+        sim.teardown()
+        if tty and not a.quiet:
+            sys.stderr.write("\n")
+    if a.json:
+        import dataclasses
+
+        print(json.dumps(dataclasses.asdict(summary), indent=1))
+    else:
+        print("summary: " + summary.line())
+    return 0
+
+
 def make_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="cosim", description="Turn any place on Earth into a drivable, "
                                 "traffic-filled simulation (OpenStreetMap + elevation -> SUMO + PyBullet).")
@@ -183,6 +261,30 @@ def make_parser() -> argparse.ArgumentParser:
     b.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     b.add_argument("-v", "--verbose", action="store_true", help="progress lines even when stderr is not a terminal")
     b.set_defaults(func=cmd_build)
+
+    r = sub.add_parser("run", help="run the co-simulation (headless by default)",
+                       description="Build (or reuse) a world and drive the physics car through SUMO traffic. "
+                                   "With no place given, runs the default preset.")
+    r.add_argument("scenario", nargs="?", help="scenario TOML file (see scenarios/)")
+    r.add_argument("--world", metavar="DIR", help="an already built world folder")
+    add_place_args(r)
+    g = r.add_argument_group("run")
+    g.add_argument("--duration", type=float, metavar="S", help="simulated seconds (default 60)")
+    g.add_argument("--speed", type=float, metavar="MPS", help="the ego's set speed in m/s (default 10)")
+    g.add_argument("--traffic", metavar="DENSITY", help="none | light | normal | dense | vehicles per km2")
+    g.add_argument("--seed", type=int, help="random seed: the same seed repeats the run")
+    g.add_argument("--start", metavar="LAT,LON", help="start here (snapped to the nearest lane); default: the centre")
+    g.add_argument("--to", metavar="LAT,LON", help="drive to this GPS coordinate by road")
+    g.add_argument("--respect-speed-limit", action="store_true", help="never exceed the lane's speed limit")
+    g.add_argument("--sensor-range", type=float, metavar="M", help="lidar/camera range the world must cover (default 100)")
+    g.add_argument("--telemetry", metavar="FILE.jsonl", help="write one JSON row per SUMO step")
+    g.add_argument("--gui", action="store_true", help="PyBullet's 3D window with a chase camera (needs a display)")
+    g.add_argument("--sumo-gui", action="store_true", help="run SUMO in sumo-gui (TraCI backend)")
+    g.add_argument("--backend", choices=["libsumo", "traci"], help="SUMO API (default libsumo)")
+    g.add_argument("--json", action="store_true", help="print the summary as JSON")
+    g.add_argument("-q", "--quiet", action="store_true")
+    g.add_argument("-v", "--verbose", action="store_true")
+    r.set_defaults(func=cmd_run, force=False)
     return p
 
 

@@ -1,0 +1,137 @@
+"""One configuration object for a run, shared by the CLI, the GUI and scenario files.
+
+A scenario file is TOML with four tables, each optional::
+
+    [world]            # netgen.config.WorldConfig fields: preset / osm / bbox / center, chunks,
+    preset = "helsinki"  # dem / elevation_url / flat, quality, out, ...
+    chunks = 1
+    [traffic]
+    density = "normal" # none | light | normal | dense | vehicles per km2
+    seed = 1
+    [ego]
+    start = [60.1700, 24.9420]   # lat, lon; default: the world's centre
+    goal = [60.1735, 24.9380]    # lat, lon; default: none (drive on along a random route)
+    speed_mps = 11.0
+    [run]
+    duration_s = 120
+    telemetry = "run.jsonl"
+
+Relative paths in a scenario (osm, dem, out, telemetry) are relative to the scenario file.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
+
+from netgen.config import WorldConfig
+from netgen.errors import InputError
+from netgen.frame import check_latlon
+
+DENSITIES = ("none", "light", "normal", "dense")
+MAX_SPEED_MPS = 40.0
+
+
+@dataclass
+class SimConfig:
+    world: WorldConfig = field(default_factory=WorldConfig)
+    world_dir: str | None = None          # run an already built world (skips the build)
+    # traffic
+    traffic: str | float = "normal"
+    seed: int = 0
+    backend: str = "libsumo"              # or "traci" (needed for sumo-gui)
+    sumo_gui: bool = False
+    # ego
+    start: tuple[float, float] | None = None
+    goal: tuple[float, float] | None = None
+    speed_mps: float = 10.0
+    respect_speed_limit: bool = False
+    max_snap_m: float = 50.0
+    # run
+    duration_s: float = 60.0
+    step_length_s: float = 0.1
+    physics_hz: float | None = None       # default: the vehicle model's recommended rate
+    sensor_range_m: float = 100.0         # lidar / camera distance (the loaded world must cover it)
+    mirror_radius_m: float = 150.0        # SUMO actors within this radius are mirrored in PyBullet
+    telemetry: str | None = None
+    gui: bool = False                     # PyBullet's 3D window
+    realtime: bool = False                # pace the loop to wall-clock time (GUI use)
+    name: str = ""
+
+    def validate(self) -> "SimConfig":
+        if self.world_dir is None:
+            self.world.validate()
+        if isinstance(self.traffic, str) and self.traffic not in DENSITIES:
+            try:
+                self.traffic = float(self.traffic)
+            except ValueError:
+                raise InputError(f"traffic must be one of {', '.join(DENSITIES)} or vehicles per km2, got {self.traffic!r}")
+        if not isinstance(self.traffic, str) and not 0 <= float(self.traffic) <= 2000:
+            raise InputError(f"traffic density {self.traffic} vehicles/km2 is out of range (0..2000)")
+        if not 0 <= float(self.speed_mps) <= MAX_SPEED_MPS:
+            raise InputError(f"speed {self.speed_mps} m/s is out of range (0..{MAX_SPEED_MPS:.0f})")
+        if not 0 < float(self.duration_s) <= 24 * 3600:
+            raise InputError(f"duration {self.duration_s} s is out of range (0..86400]")
+        for k in ("start", "goal"):
+            v = getattr(self, k)
+            if v is not None:
+                setattr(self, k, check_latlon(*v, what=k))
+        if self.backend not in ("libsumo", "traci"):
+            raise InputError("backend must be libsumo or traci")
+        if self.sumo_gui and self.backend != "traci":
+            self.backend = "traci"
+        if not 10 <= self.sensor_range_m <= 1000:
+            raise InputError("sensor range must be 10..1000 m")
+        return self
+
+    # --- scenario files ------------------------------------------------------------------
+    @classmethod
+    def from_toml(cls, path: str | Path) -> "SimConfig":
+        path = Path(path)
+        try:
+            d = tomllib.loads(path.read_text())
+        except FileNotFoundError:
+            raise InputError(f"scenario file not found: {path}")
+        except (OSError, tomllib.TOMLDecodeError) as e:
+            raise InputError(f"scenario {path.name}: {e}")
+        base = path.parent
+        unknown = set(d) - {"world", "traffic", "ego", "run", "name"}
+        if unknown:
+            raise InputError(f"scenario {path.name}: unknown table(s) {', '.join(sorted(unknown))}")
+        w = dict(d.get("world", {}))
+        for k in ("osm", "out"):
+            if isinstance(w.get(k), str):
+                w[k] = str((base / w[k]).resolve())
+        if "dem" in w:
+            dems = [w["dem"]] if isinstance(w["dem"], str) else w["dem"]
+            w["dem"] = [str((base / p).resolve()) for p in dems]
+        world_dir = w.pop("dir", None)
+        cfg = cls(world=WorldConfig.from_dict(w), name=d.get("name", path.stem))
+        if world_dir:
+            cfg.world_dir = str((base / world_dir).resolve())
+        t = d.get("traffic", {})
+        e = d.get("ego", {})
+        r = d.get("run", {})
+        mapping = {"density": "traffic", "seed": "seed", "backend": "backend", "sumo_gui": "sumo_gui",
+                   "start": "start", "goal": "goal", "speed_mps": "speed_mps",
+                   "respect_speed_limit": "respect_speed_limit", "max_snap_m": "max_snap_m",
+                   "duration_s": "duration_s", "step_length_s": "step_length_s", "physics_hz": "physics_hz",
+                   "sensor_range_m": "sensor_range_m", "mirror_radius_m": "mirror_radius_m",
+                   "telemetry": "telemetry", "gui": "gui", "realtime": "realtime"}
+        for table, tname in ((t, "traffic"), (e, "ego"), (r, "run")):
+            for k, v in table.items():
+                if k not in mapping:
+                    raise InputError(f"scenario {path.name}: unknown setting [{tname}] {k}")
+                if k in ("start", "goal") and v is not None:
+                    v = tuple(v)
+                if k == "telemetry" and v:
+                    v = str((base / v).resolve())
+                setattr(cfg, mapping[k], v)
+        return cfg.validate()
+
+    def to_dict(self) -> dict:
+        return asdict(self)

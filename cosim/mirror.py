@@ -1,0 +1,118 @@
+"""SUMO's actors mirrored into PyBullet as kinematic bodies of their real size.
+
+Each vehicle or person near the ego becomes a static (mass 0) box of the actor's length,
+width and height, moved every SUMO step with ``resetBasePositionAndOrientation``: centre from
+SUMO's front bumper (done in ``cosim.traffic``), yaw converted from SUMO's heading, z on the
+world's ground and pitch from the ground's slope along the heading. Static bodies cost the
+physics step almost nothing (no dynamics; static-static pairs are not tested), so the ego
+meets real obstacles while the step stays cheap, as SMARTS does with its kinematic traffic.
+
+Bodies are pooled per size class: an actor leaving the radius parks its body far below the
+world; a new actor of that size reuses it. No body is ever created twice for the same size,
+so memory does not grow with the run (PyBullet does not free shapes on removeBody).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pybullet as pb
+
+PARK_Z = -500.0
+COLOURS = {"person": (0.85, 0.55, 0.20, 1), "bus": (0.9, 0.75, 0.1, 1), "truck": (0.55, 0.55, 0.6, 1),
+           "default": (0.25, 0.40, 0.75, 1)}
+
+
+def _size_key(kind, l, w, h):
+    if kind == "person":
+        return ("person", 0.5, 0.5, 1.75)
+    return (kind if kind in ("bus", "truck") else "car", round(l * 2) / 2, round(w * 4) / 4, round(h * 4) / 4)
+
+
+class ActorMirror:
+    def __init__(self, client: int, world, visuals: bool = False):
+        self.client = client
+        self.world = world
+        self.visuals = visuals
+        self.active: dict = {}      # actor id -> (body, key)
+        self.pool: dict = {}        # key -> [free bodies]
+        self.shapes: dict = {}      # key -> (collision, visual)
+        self.created = 0
+        self.max_error_m = 0.0
+
+    def _body(self, key):
+        free = self.pool.get(key)
+        if free:
+            return free.pop()
+        cs_vs = self.shapes.get(key)
+        c = self.client
+        if cs_vs is None:
+            _, l, w, h = key
+            he = [l / 2, w / 2, h / 2]
+            cs = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=he, physicsClientId=c)
+            vs = -1
+            if self.visuals:
+                col = COLOURS.get(key[0], COLOURS["default"])
+                vs = pb.createVisualShape(pb.GEOM_BOX, halfExtents=he, rgbaColor=col, physicsClientId=c)
+            cs_vs = (cs, vs)
+            self.shapes[key] = cs_vs
+        self.created += 1
+        return pb.createMultiBody(0, cs_vs[0], cs_vs[1], [0, 0, PARK_Z], useMaximalCoordinates=True,
+                                 physicsClientId=c)
+
+    def update(self, snap) -> dict:
+        """Mirror a traffic snapshot (cosim.traffic.ActorsSnapshot). Returns counts."""
+        c = self.client
+        n = len(snap)
+        seen = set()
+        if n:
+            z = self.world.ground_z(snap.x, snap.y)
+            z = np.where(np.isfinite(z), z, 0.0)
+            pitch = self.world.slope_pitch(snap.x, snap.y, snap.yaw)
+            pitch = np.where(np.isfinite(pitch), pitch, np.radians(snap.slope))
+            for k in range(n):
+                aid = snap.ids[k]
+                kind = "person" if snap.kind[k] == "person" else str(snap.kind[k])
+                key = _size_key(kind, snap.length[k], snap.width[k], snap.height[k])
+                cur = self.active.get(aid)
+                if cur is None or cur[1] != key:
+                    if cur is not None:
+                        self._park(cur)
+                    cur = (self._body(key), key)
+                    self.active[aid] = cur
+                h = key[3]
+                cp = math.cos(pitch[k])
+                q = pb.getQuaternionFromEuler([0.0, -float(pitch[k]), float(snap.yaw[k])])
+                pb.resetBasePositionAndOrientation(cur[0], [float(snap.x[k]), float(snap.y[k]),
+                                                            float(z[k]) + h / 2 * cp], q, physicsClientId=c)
+                seen.add(aid)
+        gone = [a for a in self.active if a not in seen]
+        for a in gone:
+            self._park(self.active.pop(a))
+        return {"mirrored": len(self.active), "left": len(gone)}
+
+    def _park(self, cur):
+        body, key = cur
+        pb.resetBasePositionAndOrientation(body, [0, 0, PARK_Z - 10 * len(self.pool.get(key, []))], [0, 0, 0, 1],
+                                           physicsClientId=self.client)
+        self.pool.setdefault(key, []).append(body)
+
+    def pose_error(self, snap) -> float:
+        """Largest distance between a mirrored body and SUMO's centre for the same actor (m)."""
+        worst = 0.0
+        for k in range(len(snap)):
+            cur = self.active.get(snap.ids[k])
+            if cur is None:
+                continue
+            (x, y, _), _ = pb.getBasePositionAndOrientation(cur[0], physicsClientId=self.client)
+            worst = max(worst, math.hypot(x - snap.x[k], y - snap.y[k]))
+        self.max_error_m = max(self.max_error_m, worst)
+        return worst
+
+    def body_of(self, actor_id):
+        cur = self.active.get(actor_id)
+        return cur[0] if cur else None
+
+    def counts(self):
+        persons = sum(1 for _, (b, k) in self.active.items() if k[0] == "person")
+        return len(self.active) - persons, persons

@@ -1,0 +1,252 @@
+"""The PyBullet world: static tiles streamed around the car, prefab scenery, gravity.
+
+Tiles (250 m squares of a chunk) are the unit of streaming: each brings a terrain
+heightfield cut from its chunk's grid, the merged road, sidewalk and building meshes of the
+tile (static concave triangle meshes), lane markings (visual only), and the scenery
+instances standing in it (trees, poles, benches as light collision primitives).
+
+PyBullet does not free a mesh's memory when a body is removed, so shapes are pooled: a
+tile's collision and visual shapes are created once per file and reused whenever the tile
+comes back, and heightfield shapes are removed with ``removeCollisionShape``. Memory is
+therefore bounded by the tiles the car has visited, not by how often it streamed them.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pybullet as pb
+
+from models import prefab_dir
+
+COLOURS = {
+    "asphalt": (0.23, 0.23, 0.25, 1.0),
+    "sidewalk": (0.62, 0.61, 0.58, 1.0),
+    "marking": (0.95, 0.95, 0.92, 1.0),
+    "building": (0.80, 0.74, 0.64, 1.0),
+    "terrain": (0.42, 0.55, 0.33, 1.0),
+    "areas": (0.36, 0.62, 0.30, 1.0),
+    "rail": (0.45, 0.40, 0.36, 1.0),
+}
+COLLIDE = {"asphalt", "sidewalk", "building", "rail"}
+PREFAB_COLOURS = {"tree": (0.20, 0.45, 0.18, 1), "street_lamp": (0.35, 0.36, 0.38, 1),
+                  "traffic_signal": (0.15, 0.15, 0.15, 1), "stop_sign": (0.80, 0.10, 0.10, 1),
+                  "give_way_sign": (0.95, 0.95, 0.95, 1), "bench": (0.45, 0.30, 0.18, 1)}
+
+
+@dataclass
+class TileBodies:
+    bodies: list = field(default_factory=list)
+    hf_shape: int = -1
+    load_ms: float = 0.0
+
+
+class PhysicsWorld:
+    """Component with the loop's lifecycle: setup(), step(), teardown()."""
+
+    def __init__(self, world, gui: bool = False, physics_hz: float = 100.0, visuals: bool | None = None,
+                 load_budget_ms: float = 8.0):
+        self.world = world
+        self.gui = gui
+        self.physics_hz = physics_hz
+        self.visuals = gui if visuals is None else visuals
+        self.load_budget_ms = load_budget_ms
+        self.client = None
+        self.tiles: dict = {}
+        self._shape_pool: dict = {}       # (file, collide) -> (collision id, visual id)
+        self._prefabs: dict = {}
+        self._chunk_visuals: dict = {}    # chunk -> (body, refcount)
+        self.loads = 0
+        self.unloads = 0
+        self.load_times_ms: list = []
+
+    # --- lifecycle ------------------------------------------------------------------------
+    def setup(self):
+        self.client = pb.connect(pb.GUI if self.gui else pb.DIRECT)
+        if self.client < 0:
+            from netgen.errors import SimulationError
+
+            raise SimulationError("PyBullet could not open a window (no display?): run without --gui")
+        c = self.client
+        pb.setGravity(0, 0, -9.81, physicsClientId=c)
+        pb.setTimeStep(1.0 / self.physics_hz, physicsClientId=c)
+        pb.setPhysicsEngineParameter(numSolverIterations=10, physicsClientId=c)
+        if self.gui:
+            pb.configureDebugVisualizer(pb.COV_ENABLE_GUI, 0, physicsClientId=c)
+            pb.configureDebugVisualizer(pb.COV_ENABLE_SHADOWS, 1, physicsClientId=c)
+        self._load_prefabs()
+        return self
+
+    def step(self, n: int = 1):
+        for _ in range(n):
+            pb.stepSimulation(physicsClientId=self.client)
+
+    def teardown(self):
+        if self.client is not None:
+            try:
+                pb.disconnect(physicsClientId=self.client)
+            except pb.error:
+                pass
+            self.client = None
+        self.tiles.clear()
+        self._shape_pool.clear()
+        self._chunk_visuals.clear()
+
+    # --- streaming ------------------------------------------------------------------------
+    def update(self, x: float, y: float, keep_radius: float, unload_radius: float | None = None,
+               budget_ms: float | None = None) -> dict:
+        """Load tiles within keep_radius (nearest first, within a time budget), unload those
+        beyond unload_radius (hysteresis). Returns counts of what happened."""
+        unload_radius = unload_radius or keep_radius + self.world.tile_size
+        budget = self.load_budget_ms if budget_ms is None else budget_ms
+        want = [k for k in self.world.tiles_within(x, y, keep_radius) if self.world.is_built(k)]
+        t0 = time.perf_counter()
+        loaded = 0
+        for k in want:
+            if k in self.tiles:
+                continue
+            if loaded and (time.perf_counter() - t0) * 1000.0 > budget:
+                break
+            self.load_tile(k)
+            loaded += 1
+        keep = set(self.world.tiles_within(x, y, unload_radius))
+        unloaded = 0
+        for k in [k for k in self.tiles if k not in keep]:
+            self.unload_tile(k)
+            unloaded += 1
+        return {"loaded": loaded, "unloaded": unloaded, "pending": sum(1 for k in want if k not in self.tiles)}
+
+    def covered(self, x: float, y: float, r: float) -> bool:
+        """True when every built tile touching the disc (x, y, r) is loaded."""
+        return all(k in self.tiles for k in self.world.tiles_within(x, y, r) if self.world.is_built(k))
+
+    def load_tile(self, key):
+        t0 = time.perf_counter()
+        c = self.client
+        tb = TileBodies()
+        g = self.world.tile_terrain(key)
+        if g is not None:
+            ny, nx = g.z.shape
+            zmin, zmax = float(g.z.min()), float(g.z.max())
+            sh = pb.createCollisionShape(pb.GEOM_HEIGHTFIELD, meshScale=[g.spacing, g.spacing, 1.0],
+                                         heightfieldData=g.z.ravel().tolist(), numHeightfieldRows=nx,
+                                         numHeightfieldColumns=ny, physicsClientId=c)
+            pos = [g.xmin + (nx - 1) * g.spacing / 2, g.ymin + (ny - 1) * g.spacing / 2, (zmin + zmax) / 2]
+            b = pb.createMultiBody(0, sh, -1, pos, useMaximalCoordinates=True, physicsClientId=c)
+            if self.visuals:
+                pb.changeVisualShape(b, -1, rgbaColor=COLOURS["terrain"], physicsClientId=c)
+            tb.hf_shape = sh
+            tb.bodies.append(b)
+        for kind, f in self.world.tile_files(key).items():
+            collide = kind in COLLIDE
+            if not collide and not self.visuals:
+                continue
+            col, vis = self._shapes(f, kind, collide)
+            b = pb.createMultiBody(0, col, vis, [0, 0, 0], useMaximalCoordinates=True, physicsClientId=c)
+            tb.bodies.append(b)
+        tb.bodies.extend(self._scenery_bodies(key))
+        if self.visuals:
+            self._chunk_visual_ref((key[0], key[1]), +1)
+        tb.load_ms = (time.perf_counter() - t0) * 1000.0
+        self.load_times_ms.append(tb.load_ms)
+        self.tiles[key] = tb
+        self.loads += 1
+        return tb
+
+    def unload_tile(self, key):
+        tb = self.tiles.pop(key, None)
+        if tb is None:
+            return
+        c = self.client
+        for b in tb.bodies:
+            pb.removeBody(b, physicsClientId=c)
+        if tb.hf_shape >= 0:
+            pb.removeCollisionShape(tb.hf_shape, physicsClientId=c)
+        if self.visuals:
+            self._chunk_visual_ref((key[0], key[1]), -1)
+        self.unloads += 1
+
+    # --- shapes -------------------------------------------------------------------------
+    def _shapes(self, f: Path, kind: str, collide: bool):
+        key = (str(f), collide, self.visuals)
+        got = self._shape_pool.get(key)
+        if got is None:
+            c = self.client
+            col = pb.createCollisionShape(pb.GEOM_MESH, fileName=str(f), flags=pb.GEOM_FORCE_CONCAVE_TRIMESH,
+                                          physicsClientId=c) if collide else -1
+            vis = pb.createVisualShape(pb.GEOM_MESH, fileName=str(f), rgbaColor=COLOURS.get(kind, (0.7, 0.7, 0.7, 1)),
+                                       physicsClientId=c) if self.visuals else -1
+            got = (col, vis)
+            self._shape_pool[key] = got
+        return got
+
+    def _load_prefabs(self):
+        meta = json.loads((prefab_dir() / "prefabs.json").read_text())["prefabs"]
+        c = self.client
+        for kind, m in meta.items():
+            col = m["collision"]
+            off = col.get("offset", [0, 0, 0])
+            if col["type"] == "cylinder":
+                cs = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=col["radius"], height=col["height"],
+                                             collisionFramePosition=off, physicsClientId=c)
+            else:
+                cs = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=col["half_extents"],
+                                             collisionFramePosition=off, physicsClientId=c)
+            vs = -1
+            if self.visuals:
+                vs = pb.createVisualShape(pb.GEOM_MESH, fileName=str(prefab_dir() / m["file"]),
+                                          rgbaColor=PREFAB_COLOURS.get(kind, (0.6, 0.6, 0.6, 1)), physicsClientId=c)
+            self._prefabs[kind] = (cs, vs)
+
+    def _scenery_bodies(self, key) -> list:
+        inst = self.world.scenery((key[0], key[1]))
+        if not inst:
+            return []
+        xmin, ymin, xmax, ymax = self.world.tile_bounds(key)
+        by_kind: dict = {}
+        for s in inst:
+            if xmin <= s["x"] < xmax and ymin <= s["y"] < ymax and s["kind"] in self._prefabs:
+                by_kind.setdefault(s["kind"], []).append(s)
+        bodies = []
+        c = self.client
+        for kind, items in by_kind.items():
+            cs, vs = self._prefabs[kind]
+            for s in items:
+                q = pb.getQuaternionFromEuler([0, 0, s.get("yaw", 0.0)])
+                bodies.append(pb.createMultiBody(0, cs, vs, [s["x"], s["y"], s["z"]], q, useMaximalCoordinates=True,
+                                                   physicsClientId=c))
+        return bodies
+
+    def _chunk_visual_ref(self, ij, delta):
+        body, n = self._chunk_visuals.get(ij, (None, 0))
+        n += delta
+        c = self.client
+        if n > 0 and body is None:
+            f = self.world.chunks[ij]["files"].get("scenery_obj")
+            if f:
+                _, vis = self._shapes(self.world.path / f, "areas", False)
+                body = pb.createMultiBody(0, -1, vis, [0, 0, 0], physicsClientId=c)
+        if n <= 0 and body is not None:
+            pb.removeBody(body, physicsClientId=c)
+            body = None
+        if n <= 0:
+            self._chunk_visuals.pop(ij, None)
+        else:
+            self._chunk_visuals[ij] = (body, n)
+
+    # --- queries --------------------------------------------------------------------------
+    def camera_image(self, eye, target, width=640, height=400, fov=60.0, far=600.0, up=(0, 0, 1)):
+        c = self.client
+        view = pb.computeViewMatrix(eye, target, up, physicsClientId=c)
+        proj = pb.computeProjectionMatrixFOV(fov, width / height, 0.5, far, physicsClientId=c)
+        renderer = pb.ER_BULLET_HARDWARE_OPENGL if self.gui else pb.ER_TINY_RENDERER
+        _, _, rgb, depth, seg = pb.getCameraImage(width, height, view, proj, renderer=renderer,
+                                                  shadow=0, physicsClientId=c)
+        return np.reshape(np.asarray(rgb, dtype=np.uint8), (height, width, 4))[:, :, :3]
+
+    def body_count(self) -> int:
+        return pb.getNumBodies(physicsClientId=self.client)

@@ -1,0 +1,428 @@
+"""The co-simulation: SUMO traffic around a physics car in PyBullet, one loop.
+
+Components share one lifecycle (``setup`` / ``step`` / ``teardown``), as MetaDrive's managers
+do, and :class:`Simulation` orchestrates them every SUMO step (0.1 s by default):
+
+1. the ego's physics pose goes into SUMO (``moveToXY``), so SUMO's drivers and pedestrians
+   react to it; SUMO advances one step;
+2. SUMO's vehicles and persons near the ego are mirrored into PyBullet as kinematic bodies
+   (``cosim.mirror``);
+3. the driver (autopilot, keyboard or the user's own controller) reads the ego's state, its
+   path, the actors and the next traffic light, and sets throttle, brake and steering;
+4. physics advances by its substeps (the car is driven through its wheels);
+5. the static world streams: tiles within the sensor range plus a margin are loaded, far
+   ones unloaded, and the loop checks that the sensor range lies inside the loaded world;
+6. a telemetry row is written.
+
+The same class is the Python API (see README) behind ``cosim run``, scenario files and the GUI.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import random
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from netgen.errors import CosimError, InputError, SimulationError
+
+from .config import SimConfig
+
+log = logging.getLogger("cosim.sim")
+
+
+@dataclass
+class EgoState:
+    t: float
+    x: float
+    y: float
+    z: float
+    yaw: float                 # rad, 0 = east, CCW
+    speed: float               # m/s
+    lat: float
+    lon: float
+    alt_m: float
+    edge: str | None
+    lane: str | None
+    lateral_offset_m: float
+    on_road: bool
+    roll: float = 0.0
+    pitch: float = 0.0
+
+
+@dataclass
+class Summary:
+    sim_time_s: float = 0.0
+    wall_time_s: float = 0.0
+    real_time_factor: float = 0.0
+    steps: int = 0
+    max_vehicles: int = 0
+    max_persons: int = 0
+    max_mirrored: int = 0
+    tiles_loaded: int = 0
+    tiles_unloaded: int = 0
+    chunks_visited: int = 0
+    sumo_collisions: int = 0
+    sumo_teleports: int = 0
+    ego_collisions: int = 0
+    distance_m: float = 0.0
+    sensor_range_violations: int = 0
+    max_mirror_error_m: float = 0.0
+    arrived: bool | None = None
+    frame_ms_median: float = 0.0
+    frame_ms_p999: float = 0.0
+    frame_ms_max: float = 0.0
+    notes: list = field(default_factory=list)
+
+    def line(self) -> str:
+        arr = "" if self.arrived is None else (" arrived at goal." if self.arrived else " goal NOT reached.")
+        return (f"sim {self.sim_time_s:.1f} s in {self.wall_time_s:.1f} s wall (x{self.real_time_factor:.1f} real time); "
+                f"{self.distance_m:.0f} m driven; actors up to {self.max_vehicles} vehicles + {self.max_persons} persons "
+                f"({self.max_mirrored} mirrored); tiles loaded {self.tiles_loaded} / unloaded {self.tiles_unloaded}; "
+                f"collisions: ego {self.ego_collisions}, SUMO {self.sumo_collisions}; teleports {self.sumo_teleports}; "
+                f"sensor-range violations {self.sensor_range_violations}.{arr}")
+
+
+class Simulation:
+    """Build or load a world, start SUMO and PyBullet, drive the ego. See the module doc."""
+
+    def __init__(self, config: SimConfig, progress=None, driver=None):
+        self.cfg = config.validate()
+        self.progress = progress or (lambda *a, **k: None)
+        self.world = None
+        self.traffic = None
+        self.physics = None
+        self.mirror = None
+        self.vehicle = None
+        self.telemetry = None
+        self.driver = driver
+        self.path = None
+        self.route: list[str] = []
+        self.t = 0.0
+        self.summary = Summary()
+        self._frame_ms: list = []
+        self._wall0 = None
+        self._path_idx = 0
+        self._last_xy = None
+        self._rng = random.Random(config.seed)
+        self._chunks_seen: set = set()
+        self.goal_xy = None
+        self.snap_info: dict = {}
+        self.manual = None                 # (throttle, brake, steer) when driven by hand
+        self.last_control = (0.0, 0.0, 0.0)
+        self.last_snapshot = None
+        self._setup_done = False
+
+    # ------------------------------------------------------------------------------------
+    def setup(self) -> "Simulation":
+        from .demand import generate_demand
+        from .mirror import ActorMirror
+        from .physics import PhysicsWorld
+        from .telemetry import Telemetry
+        from .traffic import SumoTraffic
+        from .vehicle import RECOMMENDED_PHYSICS_HZ, EgoVehicle, configure_physics
+        from .world import World
+
+        cfg = self.cfg
+        try:
+            self.world = self._load_world()
+            self.progress("traffic", 0.0, "generating traffic demand")
+            demand = generate_demand(self.world.net_file, self.world.path / "traffic", density=cfg.traffic,
+                                     seed=cfg.seed, duration=max(cfg.duration_s, 60.0) + 60.0)
+            self.progress("sumo", 0.0, "starting SUMO")
+            self.traffic = SumoTraffic(self.world.net_file, demand.route_files, step_length=cfg.step_length_s,
+                                       seed=cfg.seed, backend=cfg.backend, gui=cfg.sumo_gui)
+            self.traffic.setup()
+            self.progress("physics", 0.0, "loading the physics world")
+            hz = cfg.physics_hz or RECOMMENDED_PHYSICS_HZ
+            self.substeps = max(1, int(round(cfg.step_length_s * hz)))
+            self.physics = PhysicsWorld(self.world, gui=cfg.gui, physics_hz=hz).setup()
+            configure_physics(self.physics.client, hz)
+            x, y, yaw, lane, pos = self._snap_start()
+            self.physics.update(x, y, self.keep_radius, budget_ms=1e9)
+            z = float(self.world.ground_z(x, y)[0])
+            self.vehicle = EgoVehicle(self.physics.client, position=(x, y, z + 0.05), yaw=yaw)
+            self.mirror = ActorMirror(self.physics.client, self.world, visuals=cfg.gui)
+            self._plan_route(lane, pos)
+            self.traffic.add_ego(route_edges=self.route)
+            self.traffic.set_ego_pose(x, y, yaw, 0.0)
+            self.telemetry = Telemetry(cfg.telemetry).setup()
+            if self.driver is None:
+                from .autopilot import Autopilot
+
+                self.driver = Autopilot(self)
+            self._last_xy = (x, y)
+        except BaseException:
+            self.teardown()
+            raise
+        self._wall0 = time.perf_counter()
+        self._setup_done = True
+        self.progress("run", 0.0, "running")
+        return self
+
+    @property
+    def keep_radius(self) -> float:
+        return self.cfg.sensor_range_m + self.world.tile_size * 0.75
+
+    def _load_world(self):
+        from .world import World
+
+        if self.cfg.world_dir:
+            return World(self.cfg.world_dir)
+        from netgen.build import build_world
+
+        self.progress("build", 0.0, "building the world")
+        w = build_world(self.cfg.world, progress=self.progress)
+        return World(w["out"])
+
+    def _snap(self, x: float, y: float, what: str):
+        """Nearest lane a car may use: (lane id, position on lane, snapped x, y, distance)."""
+        s = self.traffic.sumo
+        try:
+            edge, pos, idx = s.simulation.convertRoad(x, y, False, "passenger")
+        except Exception as e:  # libsumo raises its own error type
+            raise InputError(f"{what}: no road for cars near ({x:.0f}, {y:.0f}) m: {e}") from None
+        lane = f"{edge}_{idx}"
+        shape = np.array(s.lane.getShape(lane))
+        d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(shape, axis=0).T))])
+        pos = min(max(pos, 0.0), d[-1])
+        k = min(max(int(np.searchsorted(d, pos)), 1), len(shape) - 1)
+        t = (pos - d[k - 1]) / max(d[k] - d[k - 1], 1e-9)
+        px, py = shape[k - 1] + t * (shape[k] - shape[k - 1])
+        yaw = math.atan2(shape[k, 1] - shape[k - 1, 1], shape[k, 0] - shape[k - 1, 0])
+        dist = math.hypot(px - x, py - y)
+        return lane, pos, float(px), float(py), yaw, dist
+
+    def _snap_start(self):
+        cfg = self.cfg
+        if cfg.start:
+            x, y = self.world.frame.to_xy(cfg.start[1], cfg.start[0])
+        else:
+            x, y = 0.0, 0.0
+        x, y = float(x), float(y)
+        lane, pos, px, py, yaw, dist = self._snap(x, y, "start")
+        if dist > cfg.max_snap_m:
+            raise InputError(f"start is {dist:.0f} m from the nearest road for cars (more than {cfg.max_snap_m:.0f} m)")
+        # leave room to accelerate: not in the last metres of a lane
+        self.snap_info = {"start_snap_m": round(dist, 2), "start_lane": lane, "start_pos": round(pos, 1)}
+        log.info("start snapped %.1f m onto lane %s", dist, lane)
+        return px, py, yaw, lane, pos
+
+    def _plan_route(self, lane: str, pos: float):
+        from .driving import LanePath
+
+        s = self.traffic.sumo
+        edge = lane.rsplit("_", 1)[0]
+        if self.cfg.goal:
+            gx, gy = self.world.frame.to_xy(self.cfg.goal[1], self.cfg.goal[0])
+            glane, gpos, gpx, gpy, _, gdist = self._snap(float(gx), float(gy), "goal")
+            if gdist > self.cfg.max_snap_m:
+                raise InputError(f"goal is {gdist:.0f} m from the nearest road for cars")
+            self.goal_xy = (gpx, gpy)
+            gedge = glane.rsplit("_", 1)[0]
+            r = s.simulation.findRoute(edge, gedge, vType="DEFAULT_VEHTYPE")
+            if not r.edges:
+                raise InputError(f"goal unreachable: no route by road from the start to the goal")
+            self.route = list(r.edges)
+            self.summary.arrived = False
+            self.snap_info.update({"goal_snap_m": round(gdist, 2), "route_length_m": round(r.length, 1),
+                                   "eta_s": round(r.travelTime, 1)})
+        else:
+            self.route = self._random_route(edge)
+        self.path = LanePath(s, self.route, start_lane=lane, start_pos=pos)
+        self._path_idx = 0
+
+    def _random_route(self, edge: str, min_len: float = 800.0) -> list[str]:
+        s = self.traffic.sumo
+        edges = [e for e in s.edge.getIDList() if not e.startswith(":")]
+        best = [edge]
+        for _ in range(40):
+            to = self._rng.choice(edges)
+            try:
+                r = s.simulation.findRoute(edge, to, vType="DEFAULT_VEHTYPE")
+            except Exception:
+                continue
+            if r.edges and r.length >= min_len:
+                return list(r.edges)
+            if r.edges and len(r.edges) > len(best):
+                best = list(r.edges)
+        if len(best) < 2:
+            raise SimulationError(f"no route for the ego from edge {edge}")
+        return best
+
+    # ------------------------------------------------------------------------------------
+    def ego_state(self) -> EgoState:
+        st = self.vehicle.state()
+        k, s_here, lat_off = self.path.project(st.x, st.y, self._path_idx)
+        lane, edge = self.path.lane_of[k]
+        lon, lat = self.world.frame.to_lonlat(st.x, st.y)
+        on_road = abs(lat_off) < 3.0 and st.wheel_contact is not None
+        return EgoState(t=self.t, x=st.x, y=st.y, z=st.z, yaw=st.yaw, speed=st.speed, lat=float(lat),
+                        lon=float(lon), alt_m=st.z, edge=None if edge.startswith(":") else edge, lane=lane,
+                        lateral_offset_m=lat_off, on_road=on_road, roll=st.roll, pitch=st.pitch)
+
+    def step(self) -> EgoState:
+        if not self._setup_done:
+            raise SimulationError("call setup() before step()")
+        t0 = time.perf_counter()
+        cfg = self.cfg
+        st = self.vehicle.state()
+        self.traffic.set_ego_pose(st.x, st.y, st.yaw, max(0.0, st.speed))
+        self.traffic.step()
+        self.t += cfg.step_length_s
+        snap = self.traffic.actors_near(st.x, st.y, cfg.mirror_radius_m)
+        self.last_snapshot = snap
+        self.mirror.update(snap)
+        # driving
+        k, s_here, lat_off = self.path.project(st.x, st.y, self._path_idx)
+        self._path_idx = k
+        if self.manual is not None:
+            throttle, brake, steer = self.manual
+        else:
+            throttle, brake, steer = self.driver.control(st, s_here, snap, cfg.step_length_s)
+        self.last_control = (throttle, brake, steer)
+        self.vehicle.apply_control(throttle, brake, steer)
+        self.vehicle.step(self.substeps)
+        self._check_collisions()
+        # route bookkeeping
+        if self.goal_xy is None and self.path.length - s_here < 120.0:
+            self._extend_route()
+        if self.goal_xy is not None and math.hypot(st.x - self.goal_xy[0], st.y - self.goal_xy[1]) < 10.0 \
+                and abs(st.speed) < 1.0:
+            self.summary.arrived = True
+        # streaming
+        r = self.physics.update(st.x, st.y, self.keep_radius)
+        if not self._covered(st.x, st.y):
+            self.summary.sensor_range_violations += 1
+        self._chunks_seen.add(self.world.frame.chunk_of(st.x, st.y))
+        if self._last_xy is not None:
+            self.summary.distance_m += math.hypot(st.x - self._last_xy[0], st.y - self._last_xy[1])
+        self._last_xy = (st.x, st.y)
+        frame_ms = (time.perf_counter() - t0) * 1000.0
+        self._frame_ms.append(frame_ms)
+        ego = self.ego_state()
+        self._telemetry(ego, snap, frame_ms)
+        self.summary.steps += 1
+        if cfg.realtime:
+            lag = self._wall0 + self.t - time.perf_counter()
+            if lag > 0:
+                time.sleep(lag)
+        return ego
+
+    def _covered(self, x, y) -> bool:
+        """B8: every point within the sensor range is inside the loaded world."""
+        r = self.cfg.sensor_range_m
+        xmin, ymin, xmax, ymax = self.world.loaded_extent()
+        inside_built = xmin <= x - r and x + r <= xmax and ymin <= y - r and y + r <= ymax
+        return inside_built and self.physics.covered(x, y, r)
+
+    def _extend_route(self):
+        from .driving import LanePath
+
+        last = self.route[-1]
+        more = self._random_route(last)
+        st = self.vehicle.state()
+        k, s_here, _ = self.path.project(st.x, st.y, self._path_idx)
+        lane = self.path.lane_of[k][0]
+        cur_edge = lane.rsplit("_", 1)[0]
+        if cur_edge in self.route:
+            i = self.route.index(cur_edge)
+            self.route = self.route[i:] + more[1:]
+        else:   # inside a junction: continue from the next edge
+            self.route = self.route[-1:] + more[1:]
+        try:
+            s = self.traffic.sumo
+            self.path = LanePath(s, self.route, start_lane=lane if not lane.startswith(":") else None)
+            self._path_idx = self.path.project(st.x, st.y, 0, window=len(self.path.xy))[0]
+        except (ValueError, CosimError) as e:
+            log.info("could not extend the route: %s", e)
+
+    def _check_collisions(self):
+        import pybullet as pb
+
+        cps = pb.getContactPoints(bodyA=self.vehicle.body_id, physicsClientId=self.physics.client)
+        hit = False
+        actor_bodies = {b for b, _ in self.mirror.active.values()}
+        for c in cps:
+            other = c[2]
+            normal_z = abs(c[7][2])
+            if other in actor_bodies or normal_z < 0.5:
+                hit = True
+                break
+        if hit and not getattr(self, "_in_contact", False):
+            self.summary.ego_collisions += 1
+        self._in_contact = hit
+
+    def _telemetry(self, ego: EgoState, snap, frame_ms):
+        v, p = self.mirror.counts()
+        ts = self.traffic.stats
+        s = self.summary
+        s.max_vehicles = max(s.max_vehicles, ts.vehicles)
+        s.max_persons = max(s.max_persons, ts.persons)
+        s.max_mirrored = max(s.max_mirrored, v + p)
+        if self.telemetry is None or self.telemetry.f is None:
+            return
+        th, br, stv = self.last_control
+        self.telemetry.write({
+            "t": round(self.t, 3), "lat": round(ego.lat, 7), "lon": round(ego.lon, 7), "alt_m": round(ego.alt_m, 3),
+            "x": round(ego.x, 3), "y": round(ego.y, 3), "yaw_deg": round(math.degrees(ego.yaw), 2),
+            "speed_mps": round(ego.speed, 3), "edge": ego.edge, "lane": ego.lane,
+            "lateral_offset_m": round(ego.lateral_offset_m, 3), "on_road": ego.on_road,
+            "vehicles": v, "persons": p, "chunks_loaded": len({(k[0], k[1]) for k in self.physics.tiles}),
+            "tiles_loaded": len(self.physics.tiles), "frame_ms": round(frame_ms, 2),
+            "throttle": round(th, 3), "brake": round(br, 3), "steer": round(stv, 3),
+            "target_speed_mps": round(getattr(self.driver, "target_speed", float("nan")), 2),
+            "mode": "manual" if self.manual is not None else "auto",
+            "sumo_vehicles": ts.vehicles, "sumo_persons": ts.persons,
+        })
+
+    # ------------------------------------------------------------------------------------
+    def run(self, duration_s: float | None = None, on_step=None) -> Summary:
+        duration = self.cfg.duration_s if duration_s is None else duration_s
+        n = int(round(duration / self.cfg.step_length_s))
+        for i in range(n):
+            ego = self.step()
+            if on_step:
+                on_step(self, ego)
+            if self.summary.arrived:
+                break
+        return self.finish()
+
+    def finish(self) -> Summary:
+        s = self.summary
+        s.sim_time_s = round(self.t, 3)
+        s.wall_time_s = round(time.perf_counter() - (self._wall0 or time.perf_counter()), 3)
+        s.real_time_factor = round(s.sim_time_s / s.wall_time_s, 2) if s.wall_time_s > 0 else 0.0
+        if self.physics is not None:
+            s.tiles_loaded, s.tiles_unloaded = self.physics.loads, self.physics.unloads
+        if self.traffic is not None:
+            s.sumo_collisions, s.sumo_teleports = self.traffic.stats.collisions, self.traffic.stats.teleports
+        s.chunks_visited = len(self._chunks_seen)
+        if self._frame_ms:
+            f = np.array(self._frame_ms)
+            s.frame_ms_median = round(float(np.median(f)), 2)
+            s.frame_ms_p999 = round(float(np.percentile(f, 99.9)), 2)
+            s.frame_ms_max = round(float(f.max()), 2)
+        if self.mirror is not None:
+            s.max_mirror_error_m = round(self.mirror.max_error_m, 4)
+        return s
+
+    def teardown(self):
+        for comp in ("telemetry", "physics", "traffic"):
+            c = getattr(self, comp, None)
+            if c is not None:
+                try:
+                    c.teardown()
+                except Exception as e:  # teardown must not mask the original error
+                    log.warning("teardown of %s: %s", comp, e)
+                setattr(self, comp, None)
+        self._setup_done = False
+
+    def __enter__(self):
+        return self.setup()
+
+    def __exit__(self, *exc):
+        self.teardown()

@@ -1,0 +1,140 @@
+"""Read-only view of a built world folder (``world.json`` and its chunk files).
+
+Knows the frame (lat/lon <-> x/y), the tiles of every chunk, and the ground height anywhere
+in the world (bilinear on the chunk terrain grids, the same surface the physics heightfield
+and the road meshes were made from), so mirrored actors can be placed on it.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from netgen.errors import DataError
+from netgen.frame import WorldFrame
+from netgen.terrain import TerrainGrid
+
+
+class World:
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        wj = self.path / "world.json"
+        if not wj.exists():
+            raise DataError(f"no world at {self.path} (world.json missing): build one with `cosim build`")
+        try:
+            self.meta = json.loads(wj.read_text())
+        except ValueError as e:
+            raise DataError(f"{wj} is not valid JSON ({e})")
+        m = self.meta
+        self.frame = WorldFrame(m["center"]["lat"], m["center"]["lon"], m["chunk_size_m"])
+        self.chunk_size = float(m["chunk_size_m"])
+        self.tile_size = float(m.get("tile_size_m", self.chunk_size))
+        self.spacing = float(m["terrain"]["spacing_m"])
+        self.chunks = {(c["i"], c["j"]): c for c in m["chunks"]}
+        self.net_file = self.path / m["net_file"]
+        self._grids: dict = {}
+        self._scenery: dict = {}
+        self.nt = max(1, int(round(self.chunk_size / self.tile_size)))
+
+    # --- terrain ------------------------------------------------------------------------
+    def grid(self, ij) -> TerrainGrid | None:
+        g = self._grids.get(ij)
+        if g is None and ij in self.chunks:
+            c = self.chunks[ij]
+            z = np.load(self.path / c["files"]["terrain"]).astype(np.float64)
+            g = TerrainGrid(c["bounds_m"][0], c["bounds_m"][1], self.spacing, z)
+            self._grids[ij] = g
+        return g
+
+    def ground_z(self, x, y) -> np.ndarray:
+        """Ground height at world x/y (arrays); NaN outside the built world."""
+        x = np.atleast_1d(np.asarray(x, dtype=float))
+        y = np.atleast_1d(np.asarray(y, dtype=float))
+        out = np.full(x.shape, np.nan)
+        s = self.chunk_size
+        ci = np.floor(x / s + 0.5).astype(int)
+        cj = np.floor(y / s + 0.5).astype(int)
+        for ij in set(zip(ci.tolist(), cj.tolist())):
+            g = self.grid(ij)
+            if g is None:
+                continue
+            m = (ci == ij[0]) & (cj == ij[1])
+            out[m] = g.sample(x[m], y[m])
+        return out
+
+    def slope_pitch(self, x, y, yaw, d: float = 1.5) -> np.ndarray:
+        """Pitch (rad, nose up positive) of a body at x/y heading yaw, from the ground."""
+        c, s = np.cos(yaw), np.sin(yaw)
+        zf = self.ground_z(x + c * d, y + s * d)
+        zb = self.ground_z(x - c * d, y - s * d)
+        return np.arctan2(zf - zb, 2 * d)
+
+    # --- tiles --------------------------------------------------------------------------
+    def tile_bounds(self, key):
+        i, j, a, b = key
+        xmin, ymin = self.chunks[(i, j)]["bounds_m"][:2] if (i, j) in self.chunks else \
+            self.frame.chunk_bounds(i, j)[:2]
+        return (xmin + a * self.tile_size, ymin + b * self.tile_size,
+                xmin + (a + 1) * self.tile_size, ymin + (b + 1) * self.tile_size)
+
+    def tile_of(self, x: float, y: float):
+        i, j = self.frame.chunk_of(x, y)
+        xmin, ymin, _, _ = self.frame.chunk_bounds(i, j)
+        a = min(self.nt - 1, max(0, int((x - xmin) // self.tile_size)))
+        b = min(self.nt - 1, max(0, int((y - ymin) // self.tile_size)))
+        return (i, j, a, b)
+
+    def tiles_within(self, x: float, y: float, r: float) -> list:
+        """Tile keys (i, j, a, b) whose square intersects the disc (x, y, r), nearest first;
+        tiles of chunks that are not built are included (the caller decides what to do)."""
+        t = self.tile_size
+        out = []
+        gx0 = math.floor((x - r + self.chunk_size / 2) / t)
+        gx1 = math.floor((x + r + self.chunk_size / 2) / t)
+        gy0 = math.floor((y - r + self.chunk_size / 2) / t)
+        gy1 = math.floor((y + r + self.chunk_size / 2) / t)
+        for gx in range(gx0, gx1 + 1):
+            for gy in range(gy0, gy1 + 1):
+                xmin = gx * t - self.chunk_size / 2
+                ymin = gy * t - self.chunk_size / 2
+                dx = max(xmin - x, 0.0, x - (xmin + t))
+                dy = max(ymin - y, 0.0, y - (ymin + t))
+                d = math.hypot(dx, dy)
+                if d <= r:
+                    i, a = divmod(gx, self.nt)
+                    j, b = divmod(gy, self.nt)
+                    out.append((d, (i, j, a, b)))
+        out.sort()
+        return [k for _, k in out]
+
+    def is_built(self, key) -> bool:
+        return (key[0], key[1]) in self.chunks
+
+    def tile_files(self, key) -> dict:
+        c = self.chunks.get((key[0], key[1]))
+        if not c:
+            return {}
+        return {k: self.path / v for k, v in c.get("tiles", {}).get(f"{key[2]}_{key[3]}", {}).items()}
+
+    def tile_terrain(self, key) -> TerrainGrid | None:
+        g = self.grid((key[0], key[1]))
+        if g is None:
+            return None
+        n = int(round(self.tile_size / self.spacing))
+        a, b = key[2], key[3]
+        z = g.z[b * n:(b + 1) * n + 1, a * n:(a + 1) * n + 1]
+        return TerrainGrid(g.xmin + a * self.tile_size, g.ymin + b * self.tile_size, self.spacing, z)
+
+    def scenery(self, ij) -> list:
+        s = self._scenery.get(ij)
+        if s is None:
+            c = self.chunks.get(ij)
+            f = c["files"].get("scenery_json") if c else None
+            s = json.loads((self.path / f).read_text())["instances"] if f else []
+            self._scenery[ij] = s
+        return s
+
+    def loaded_extent(self):
+        return tuple(self.meta["extent_m"])
