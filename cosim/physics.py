@@ -60,6 +60,9 @@ class PhysicsWorld:
         self._shape_pool: dict = {}       # (file, collide) -> (collision id, visual id)
         self._prefabs: dict = {}
         self._chunk_visuals: dict = {}    # chunk -> (body, refcount)
+        self._hf_free: dict = {}          # (nx, ny, spacing) -> [free heightfield shapes]
+        self._hf_key_of: dict = {}
+        self.hf_shapes_created = 0
         self.loads = 0
         self.unloads = 0
         self.load_times_ms: list = []
@@ -130,12 +133,9 @@ class PhysicsWorld:
         tb = TileBodies()
         g = self.world.tile_terrain(key)
         if g is not None:
+            sh, base = self._heightfield(g)
             ny, nx = g.z.shape
-            zmin, zmax = float(g.z.min()), float(g.z.max())
-            sh = pb.createCollisionShape(pb.GEOM_HEIGHTFIELD, meshScale=[g.spacing, g.spacing, 1.0],
-                                         heightfieldData=g.z.ravel().tolist(), numHeightfieldRows=nx,
-                                         numHeightfieldColumns=ny, physicsClientId=c)
-            pos = [g.xmin + (nx - 1) * g.spacing / 2, g.ymin + (ny - 1) * g.spacing / 2, (zmin + zmax) / 2]
+            pos = [g.xmin + (nx - 1) * g.spacing / 2, g.ymin + (ny - 1) * g.spacing / 2, base]
             b = pb.createMultiBody(0, sh, -1, pos, useMaximalCoordinates=True, physicsClientId=c)
             if self.visuals:
                 pb.changeVisualShape(b, -1, rgbaColor=COLOURS["terrain"], physicsClientId=c)
@@ -165,7 +165,7 @@ class PhysicsWorld:
         for b in tb.bodies:
             pb.removeBody(b, physicsClientId=c)
         if tb.hf_shape >= 0:
-            pb.removeCollisionShape(tb.hf_shape, physicsClientId=c)
+            self._hf_free.setdefault(self._hf_key_of[tb.hf_shape], []).append(tb.hf_shape)
         if self.visuals:
             self._chunk_visual_ref((key[0], key[1]), -1)
         self.unloads += 1
@@ -183,6 +183,39 @@ class PhysicsWorld:
             got = (col, vis)
             self._shape_pool[key] = got
         return got
+
+    HF_RANGE = 600.0
+
+    def _heightfield(self, g):
+        """A pooled heightfield shape filled with tile grid `g`; returns (shape, body z).
+
+        PyBullet never frees a collision shape once a body used it, so heightfield shapes
+        are reused: a free one of the same size is refilled in place
+        (``replaceHeightfieldIndex``). Bullet centres a heightfield on (min+max)/2 of the data
+        it was *created* with and keeps that on refill, so every shape is created spanning
+        a fixed range of +-HF_RANGE (centre 0) and heights are stored relative to the
+        tile's own base, with the body placed at that base.
+        """
+        ny, nx = g.z.shape
+        key = (nx, ny, g.spacing)
+        base = float(np.round((g.z.min() + g.z.max()) / 2.0))
+        data = (g.z - base).ravel().tolist()
+        c = self.client
+        free = self._hf_free.get(key)
+        if free:
+            sh = free.pop()
+        else:
+            init = np.zeros(nx * ny)
+            init[0], init[1] = -self.HF_RANGE, self.HF_RANGE
+            sh = pb.createCollisionShape(pb.GEOM_HEIGHTFIELD, meshScale=[g.spacing, g.spacing, 1.0],
+                                         heightfieldData=init.tolist(), numHeightfieldRows=nx,
+                                         numHeightfieldColumns=ny, physicsClientId=c)
+            self._hf_key_of[sh] = key
+            self.hf_shapes_created += 1
+        pb.createCollisionShape(pb.GEOM_HEIGHTFIELD, meshScale=[g.spacing, g.spacing, 1.0], heightfieldData=data,
+                                numHeightfieldRows=nx, numHeightfieldColumns=ny, replaceHeightfieldIndex=sh,
+                                physicsClientId=c)
+        return sh, base
 
     def _load_prefabs(self):
         meta = json.loads((prefab_dir() / "prefabs.json").read_text())["prefabs"]

@@ -49,7 +49,8 @@ class World:
         return g
 
     def ground_z(self, x, y) -> np.ndarray:
-        """Ground height at world x/y (arrays); NaN outside the built world."""
+        """Ground height at world x/y (arrays), on the same triangles as the physics
+        heightfield; NaN outside the built world."""
         x = np.atleast_1d(np.asarray(x, dtype=float))
         y = np.atleast_1d(np.asarray(y, dtype=float))
         out = np.full(x.shape, np.nan)
@@ -61,7 +62,7 @@ class World:
             if g is None:
                 continue
             m = (ci == ij[0]) & (cj == ij[1])
-            out[m] = g.sample(x[m], y[m])
+            out[m] = g.sample_tri(x[m], y[m])
         return out
 
     def slope_pitch(self, x, y, yaw, d: float = 1.5) -> np.ndarray:
