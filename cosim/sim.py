@@ -186,6 +186,12 @@ class Simulation:
         except Exception as e:  # libsumo raises its own error type
             raise InputError(f"{what}: no road for cars near ({x:.0f}, {y:.0f}) m: {e}") from None
         lane = f"{edge}_{idx}"
+        guard = 0
+        while lane.startswith(":") and guard < 5:      # inside a junction: the lane it leads into
+            links = s.lane.getLinks(lane)
+            if not links:
+                break
+            lane, pos, guard = links[0][0], 0.0, guard + 1
         shape = np.array(s.lane.getShape(lane))
         d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(shape, axis=0).T))])
         pos = min(max(pos, 0.0), d[-1])

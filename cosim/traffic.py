@@ -1,0 +1,985 @@
+"""SUMO traffic as a co-simulation component (libsumo by default, TraCI selectable).
+
+``SumoTraffic`` owns one SUMO run: routing, traffic lights, other cars and pedestrians. The
+orchestrating loop calls ``setup()`` once, then per frame ``set_ego_pose(...)``, ``step()`` and
+``actors_near(...)``, and ``teardown()`` at the end (MetaDrive-manager / SMARTS-provider style).
+
+Frames and conventions
+----------------------
+SUMO's network coordinates *are* world metres (netconvert ran with the world's tmerc projection
+and ``--offset.disable-normalization``). SUMO reports a vehicle's position at its FRONT bumper
+and its heading as degrees, 0 = north, clockwise. The world uses body centres and yaw in
+radians, 0 = +x (east), counter-clockwise. The small pure functions below convert between the
+two; everything this module returns is in world convention (centre, yaw), and ``set_ego_pose``
+takes world centre and yaw.
+
+The ego
+-------
+``add_ego`` puts a vehicle of the ego's size into SUMO before the first ``moveToXY`` (moving a
+vehicle that SUMO does not know fails). Each frame ``set_ego_pose`` calls
+``vehicle.moveToXY(keepRoute=2)``: SUMO puts the ego exactly there, maps it onto the nearest lane
+(replacing its route when it leaves it) so that SUMO's cars follow / brake for it and pedestrians
+see it; its speed mode and lane-change mode are 0 so SUMO never fights the pose, and after each
+step its speed is set to the physics speed (``setPreviousSpeed``), not the displacement SUMO
+derives. The ego never appears in actor lists or counts.
+
+Actors
+------
+``actors_near`` reads one context subscription on the ego (vehicles and persons, all variables
+in one batch per step) instead of per-actor getters; without an ego a hidden POI is the anchor.
+
+libsumo runs one simulation per process: a second ``setup()`` while another SumoTraffic runs on
+libsumo raises SimulationError. SUMO's own errors (missing or corrupt net, bad route file) come
+out as one-line SimulationError messages taken from SUMO's error log.
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import re
+import shutil
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from netgen.errors import SimulationError
+
+log = logging.getLogger(__name__)
+
+EGO_ID = "ego"
+PROBE_ID = "cosim_probe"
+CONTEXT_MARGIN = 20.0   # m: front-bumper anchors vs centre distances (half a bus + half the ego)
+DEFAULT_CONTEXT_RADIUS = 150.0
+
+_LIBSUMO_OWNER = None   # the SumoTraffic running on libsumo in this process, if any
+
+
+@contextlib.contextmanager
+def _stderr_to(path: str):
+    """Redirect the process's stderr (fd 2, where libsumo's C++ code writes) into a file."""
+    try:
+        sys.stderr.flush()
+    except Exception:
+        pass
+    saved = os.dup(2)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.dup2(fd, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(fd)
+
+
+def _forward_text(path: str) -> None:
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            text = f.read().strip()
+    except OSError:
+        return
+    for line in text.splitlines():
+        if line.strip() and "proj.db" not in line:
+            log.info("SUMO: %s", line.strip())
+
+
+# --- pure conversions -----------------------------------------------------------------------
+def sumo_angle_to_yaw(angle_deg):
+    """SUMO heading (degrees, 0 = north, clockwise) -> world yaw (radians, 0 = east, CCW),
+    wrapped to [-pi, pi). Works on scalars and arrays."""
+    yaw = np.radians(90.0 - np.asarray(angle_deg, dtype=float))
+    yaw = (yaw + np.pi) % (2.0 * np.pi) - np.pi
+    return float(yaw) if np.ndim(yaw) == 0 else yaw
+
+
+def yaw_to_sumo_angle(yaw_rad):
+    """World yaw (radians, 0 = east, CCW) -> SUMO heading (degrees in [0, 360), 0 = north, CW)."""
+    a = (90.0 - np.degrees(np.asarray(yaw_rad, dtype=float))) % 360.0
+    return float(a) if np.ndim(a) == 0 else a
+
+
+def front_to_center(x, y, angle_deg, length):
+    """SUMO front-bumper position -> body centre: centre = front - heading * length / 2."""
+    a = np.radians(np.asarray(angle_deg, dtype=float))
+    half = 0.5 * np.asarray(length, dtype=float)
+    cx = np.asarray(x, dtype=float) - np.sin(a) * half
+    cy = np.asarray(y, dtype=float) - np.cos(a) * half
+    if np.ndim(cx) == 0:
+        return float(cx), float(cy)
+    return cx, cy
+
+
+def center_to_front(x, y, angle_deg, length):
+    """Body centre -> SUMO front-bumper position (inverse of :func:`front_to_center`)."""
+    return front_to_center(x, y, np.asarray(angle_deg, dtype=float), -np.asarray(length, dtype=float))
+
+
+# --- snapshot -------------------------------------------------------------------------------
+@dataclass
+class ActorsSnapshot:
+    """Actors near a point, as parallel numpy arrays (world convention: centre, yaw)."""
+    time: float
+    ids: np.ndarray        # str (object)
+    kind: np.ndarray       # str: SUMO vehicle class ("passenger", "truck", "bus", ...) or "person"
+    x: np.ndarray          # body centre, m
+    y: np.ndarray
+    yaw: np.ndarray        # rad, 0 = east, CCW
+    length: np.ndarray     # m
+    width: np.ndarray
+    height: np.ndarray
+    speed: np.ndarray      # m/s
+    slope: np.ndarray      # degrees, positive uphill (pitch)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @property
+    def is_person(self) -> np.ndarray:
+        return self.kind == "person"
+
+    def index(self, actor_id: str) -> int:
+        hits = np.nonzero(self.ids == actor_id)[0]
+        if len(hits) == 0:
+            raise KeyError(actor_id)
+        return int(hits[0])
+
+    @classmethod
+    def empty(cls, time: float = 0.0) -> "ActorsSnapshot":
+        z = np.zeros(0)
+        return cls(time, np.zeros(0, dtype=object), np.zeros(0, dtype=object), z, z.copy(),
+                   z.copy(), z.copy(), z.copy(), z.copy(), z.copy(), z.copy())
+
+
+@dataclass
+class TrafficStats:
+    """Per-step counts and accumulated totals (never fatal)."""
+    steps: int = 0
+    vehicles: int = 0          # in the simulation now (ego excluded)
+    persons: int = 0           # walking now (departed, not arrived)
+    teleports: int = 0         # accumulated teleport starts
+    collisions: int = 0        # accumulated distinct collisions (collider, victim)
+    max_vehicles: int = 0
+    max_persons: int = 0
+    _seen_collisions: set = field(default_factory=set, repr=False)
+
+
+@dataclass
+class _Kept:
+    """State of one actor carried across swap_network."""
+    old_id: str
+    person: bool
+    type_id: str
+    type_params: dict
+    x: float              # SUMO front position
+    y: float
+    angle: float          # SUMO degrees
+    speed: float
+    edge: str
+    lane: int
+    lane_pos: float
+    edges: list
+    arrival_pos: float | None = None
+
+
+# --- the component --------------------------------------------------------------------------
+class SumoTraffic:
+    """One SUMO run: setup() / step() / teardown(), ego injection, actors, traffic lights."""
+
+    def __init__(self, net_file, route_files: Sequence = (), step_length: float = 0.1,
+                 seed: int = 0, backend: str = "libsumo", gui: bool = False,
+                 extra_args: Iterable[str] = (), time_to_teleport: float = 120.0,
+                 warnings: bool = False):
+        if backend not in ("libsumo", "traci"):
+            raise SimulationError(f"unknown SUMO backend {backend!r} (use libsumo or traci)")
+        if gui and backend != "traci":
+            raise SimulationError("sumo-gui needs backend='traci' (libsumo cannot drive a GUI)")
+        if not (0.001 <= float(step_length) <= 10.0):
+            raise SimulationError(f"SUMO step length {step_length} s is out of range (0.001..10)")
+        self.net_file = Path(net_file)
+        if isinstance(route_files, (str, os.PathLike)):
+            route_files = [route_files]
+        self.route_files = [Path(p) for p in route_files]
+        self.step_length = float(step_length)
+        self.seed = int(seed)
+        self.backend = backend
+        self.gui = bool(gui)
+        self.extra_args = [str(a) for a in extra_args]
+        self.time_to_teleport = float(time_to_teleport)
+        self.warnings = bool(warnings)
+        self.stats = TrafficStats()
+        self._sim = None           # libsumo module or a traci Connection
+        self._label = None
+        self._tmpdir: str | None = None
+        self._time_offset = 0.0
+        self._generation = 0
+        self._reset_run_state()
+        self._ego_spec: dict | None = None
+
+    # --- lifecycle ----------------------------------------------------------------------
+    def _reset_run_state(self):
+        self._ego_in_sim = False
+        self._ego_added = False
+        self._ego_pending_speed: float | None = None
+        self._ego_off_network = False
+        self._ctx_anchor: str | None = None
+        self._ctx_radius = DEFAULT_CONTEXT_RADIUS
+        self._probe_xy: tuple | None = None
+        self._probe_radius: float | None = None
+        self._tls_ids: list[str] = []
+        self._tls_fresh: dict[str, str] = {}
+        self._lane_tls: dict[str, tuple[str, int]] = {}
+        self._exc: tuple = (Exception,)
+        self._dims_cache: dict[str, tuple[float, float, float]] = {}
+
+    @property
+    def running(self) -> bool:
+        return self._sim is not None
+
+    def setup(self) -> None:
+        """Start SUMO on the net and route files. Raises SimulationError (one line)."""
+        global _LIBSUMO_OWNER
+        if self._sim is not None:
+            raise SimulationError("SumoTraffic.setup(): this simulation is already running")
+        self._preflight()
+        from cosim.demand import sumo_env, sumo_home
+        home = sumo_home()
+        env = sumo_env()
+        for k in ("SUMO_HOME", "PROJ_DATA", "PROJ_LIB"):
+            if k in env:
+                os.environ.setdefault(k, env[k])
+        self._tmpdir = tempfile.mkdtemp(prefix="cosim-sumo-")
+        err_log = os.path.join(self._tmpdir, "sumo-errors.log")
+        binary = os.path.join(home, "bin", "sumo-gui" if self.gui else "sumo")
+        cmd = [binary, "-n", str(self.net_file)]
+        if self.route_files:
+            cmd += ["-r", ",".join(str(p) for p in self.route_files)]
+        cmd += ["--step-length", f"{self.step_length:g}", "--seed", str(self.seed),
+                "--collision.action", "warn", "--time-to-teleport", f"{self.time_to_teleport:g}",
+                "--no-step-log", "--ignore-route-errors", "--pedestrian.model", "striping",
+                "--error-log", err_log, "--duration-log.disable"]
+        if not self.warnings:
+            cmd += ["--no-warnings"]
+        if self.gui:
+            cmd += ["--start", "--quit-on-end"]
+        cmd += self.extra_args
+        self._reset_run_state()
+        if self.backend == "libsumo":
+            import libsumo
+            if _LIBSUMO_OWNER is not None or libsumo.simulation.isLoaded():
+                self._cleanup_tmp()
+                raise SimulationError("libsumo already runs a simulation in this process (one per "
+                                      "process): tear the other one down first, or use "
+                                      "backend='traci'")
+            captured = os.path.join(self._tmpdir, "sumo-stderr.txt")
+            try:
+                # libsumo prints load errors to the process's stderr (not to --error-log)
+                with _stderr_to(captured):
+                    libsumo.start(cmd)
+            except Exception as e:
+                msg = self._sumo_error(e, err_log, captured)
+                try:
+                    libsumo.close()
+                except Exception:
+                    pass
+                self._cleanup_tmp()
+                raise SimulationError(f"SUMO could not start on {self.net_file.name}: {msg}") from None
+            self._sim = libsumo
+            _LIBSUMO_OWNER = self
+            _forward_text(captured)
+            self._exc = (libsumo.TraCIException,) + ((libsumo.FatalTraCIError,)
+                                                      if hasattr(libsumo, "FatalTraCIError") else ())
+        else:
+            import subprocess
+            import traci
+            self._label = f"cosim-{id(self):x}-{self._generation}"
+            try:
+                traci.start(cmd, label=self._label, doSwitch=False,
+                            stdout=subprocess.DEVNULL, numRetries=100)
+                self._sim = traci.getConnection(self._label)
+            except Exception as e:
+                msg = self._sumo_error(e, err_log)
+                try:
+                    traci.switch(self._label)
+                    traci.close(False)
+                except Exception:
+                    pass
+                self._cleanup_tmp()
+                raise SimulationError(f"SUMO could not start on {self.net_file.name}: {msg}") from None
+            self._exc = (traci.exceptions.TraCIException, traci.exceptions.FatalTraCIError)
+        self._err_log = err_log
+        try:
+            self._after_start()
+        except self._exc as e:
+            self.teardown()
+            raise SimulationError(f"SUMO setup failed: {self._sumo_error(e, err_log)}") from None
+
+    def teardown(self) -> None:
+        """Close SUMO (idempotent)."""
+        global _LIBSUMO_OWNER
+        sim, self._sim = self._sim, None
+        if sim is not None:
+            try:
+                sim.close()
+            except Exception as e:  # already closed / SUMO died: nothing left to close
+                log.debug("SUMO close: %s", e)
+            if self.backend == "libsumo" and _LIBSUMO_OWNER is self:
+                _LIBSUMO_OWNER = None
+        self._cleanup_tmp()
+        self._reset_run_state()
+
+    def __enter__(self):
+        self.setup()
+        return self
+
+    def __exit__(self, *exc):
+        self.teardown()
+
+    def __del__(self):
+        try:
+            if self._sim is not None:
+                self.teardown()
+        except Exception:
+            pass
+
+    def _cleanup_tmp(self):
+        if self._tmpdir:
+            shutil.rmtree(self._tmpdir, ignore_errors=True)
+            self._tmpdir = None
+
+    def _preflight(self):
+        """Catch what libsumo would crash or throw a bare 'Process Error' on."""
+        net = self.net_file
+        if not net.is_file():
+            raise SimulationError(f"SUMO network {net} does not exist")
+        try:
+            with open(net, "rb") as f:
+                head = f.read(1 << 16)
+        except OSError as e:
+            raise SimulationError(f"cannot read SUMO network {net}: {e.strerror or e}")
+        text = head.decode("utf-8", "replace")
+        body = re.sub(r"<!--.*?-->", "", text, flags=re.S)
+        m = re.search(r"<([A-Za-z_][\w.-]*)(\s[^>]*)?>", re.sub(r"<\?.*?\?>", "", body, flags=re.S))
+        if not m or m.group(1) != "net" or "version=" not in (m.group(2) or ""):
+            raise SimulationError(f"{net} is not a SUMO network (no <net version=...> root element)")
+        for r in self.route_files:
+            if not r.is_file():
+                raise SimulationError(f"SUMO route file {r} does not exist")
+
+    def _sumo_error(self, exc, err_log, *more_logs) -> str:
+        """First 'Error:' line of SUMO's error log, else the exception text, on one line."""
+        lines = []
+        for path in (err_log, *more_logs):
+            try:
+                with open(path, encoding="utf-8", errors="replace") as f:
+                    lines += [ln.strip() for ln in f if ln.strip()]
+            except OSError:
+                pass
+        errs = [ln for ln in lines if ln.startswith("Error:")]
+        if errs:
+            msg = errs[0][len("Error:"):].strip()
+            # SUMO adds the location on following lines ("In file ...", "At line/column ...")
+            i = lines.index(errs[0])
+            extra = [ln for ln in lines[i + 1:i + 3] if ln.startswith(("In file", "At line"))]
+            msg = " ".join([msg] + extra)
+        else:
+            msg = str(exc) or type(exc).__name__
+        return " ".join(msg.split())
+
+    def _after_start(self):
+        s = self._sim
+        tc = self._tc
+        self._tls_ids = list(s.trafficlight.getIDList())
+        for tid in self._tls_ids:
+            s.trafficlight.subscribe(tid, [tc.TL_RED_YELLOW_GREEN_STATE])
+            for i, links in enumerate(s.trafficlight.getControlledLinks(tid)):
+                for link in links:
+                    if link and link[0] not in self._lane_tls:
+                        self._lane_tls[link[0]] = (tid, i)
+        s.simulation.subscribe([tc.VAR_TELEPORT_STARTING_VEHICLES_NUMBER,
+                                tc.VAR_COLLIDING_VEHICLES_NUMBER,
+                                tc.VAR_DEPARTED_PERSONS_NUMBER, tc.VAR_ARRIVED_PERSONS_NUMBER,
+                                tc.VAR_DEPARTED_VEHICLES_IDS, tc.VAR_ARRIVED_VEHICLES_IDS])
+        self.stats.vehicles = 0
+        self.stats.persons = 0
+
+    @property
+    def _tc(self):
+        if self.backend == "libsumo":
+            import libsumo
+            return libsumo.constants
+        import traci.constants
+        return traci.constants
+
+    def _require(self):
+        if self._sim is None:
+            raise SimulationError("SUMO is not running: call SumoTraffic.setup() first")
+        return self._sim
+
+    # --- time ---------------------------------------------------------------------------
+    @property
+    def sim_time(self) -> float:
+        """Simulation time in s (continuous across swap_network)."""
+        if self._sim is None:
+            return self._time_offset
+        return self._time_offset + self._sim.simulation.getTime()
+
+    @property
+    def sumo(self):
+        """The raw libsumo module / traci connection (for tests and debugging)."""
+        return self._require()
+
+    def step(self) -> None:
+        """Advance SUMO by one step (step_length seconds)."""
+        s = self._require()
+        try:
+            s.simulation.step()
+        except self._exc as e:
+            raise SimulationError(f"SUMO step failed at t={self.sim_time:.1f} s: "
+                                  f"{self._sumo_error(e, self._err_log)}") from None
+        self._after_step()
+
+    def _after_step(self):
+        s, tc, st = self._sim, self._tc, self.stats
+        st.steps += 1
+        self._tls_fresh.clear()
+        r = s.simulation.getSubscriptionResults()
+        departed = r.get(tc.VAR_DEPARTED_VEHICLES_IDS, ())
+        arrived = r.get(tc.VAR_ARRIVED_VEHICLES_IDS, ())
+        if self._ego_added:
+            if EGO_ID in departed:
+                self._ego_in_sim = True
+                if self._ctx_anchor != EGO_ID:
+                    self._subscribe_context(EGO_ID, self._ctx_radius)
+            if EGO_ID in arrived:  # should not happen (remote controlled); re-add next pose
+                log.warning("SUMO removed the ego vehicle at t=%.1f s; re-adding it", self.sim_time)
+                self._ego_in_sim = False
+                self._ctx_anchor = None
+                self._readd_ego()
+        if self._ego_in_sim and self._ego_pending_speed is not None:
+            try:
+                s.vehicle.setPreviousSpeed(EGO_ID, self._ego_pending_speed)
+            except self._exc:
+                pass
+        n_tele = int(r.get(tc.VAR_TELEPORT_STARTING_VEHICLES_NUMBER, 0))
+        if n_tele:
+            st.teleports += n_tele
+            log.info("SUMO: %d vehicle(s) teleported at t=%.1f s (total %d)", n_tele,
+                     self.sim_time, st.teleports)
+        if r.get(tc.VAR_COLLIDING_VEHICLES_NUMBER, 0):
+            for c in s.simulation.getCollisions():
+                key = (c.collider, c.victim)
+                if key not in st._seen_collisions:
+                    st._seen_collisions.add(key)
+                    st.collisions += 1
+                    log.info("SUMO collision at t=%.1f s: %s (%s) hit %s (%s), %s", self.sim_time,
+                             c.collider, c.colliderType, c.victim, c.victimType, c.type)
+        st.persons += int(r.get(tc.VAR_DEPARTED_PERSONS_NUMBER, 0)) - int(
+            r.get(tc.VAR_ARRIVED_PERSONS_NUMBER, 0))
+        st.vehicles = s.vehicle.getIDCount() - (1 if self._ego_in_sim else 0)
+        st.max_vehicles = max(st.max_vehicles, st.vehicles)
+        st.max_persons = max(st.max_persons, st.persons)
+
+    # --- ego ----------------------------------------------------------------------------
+    def add_ego(self, route_edges: Sequence[str] | None = None, from_edge: str | None = None,
+                to_edge: str | None = None, length: float = 4.5, width: float = 1.8,
+                height: float = 1.5, vclass: str = "passenger", max_speed: float = 70.0) -> None:
+        """Add the ego vehicle to SUMO (before any set_ego_pose).
+
+        The route is ``route_edges``, or SUMO's fastest route ``from_edge`` -> ``to_edge``, or any
+        edge the ego may use (the first set_ego_pose relocates it anyway).
+        """
+        s = self._require()
+        if self._ego_added:
+            raise SimulationError("the ego vehicle was already added")
+        self._ego_spec = dict(length=float(length), width=float(width), height=float(height),
+                              vclass=vclass, max_speed=float(max_speed))
+        if route_edges:
+            edges = [str(e) for e in route_edges]
+        elif from_edge and to_edge:
+            try:
+                edges = list(s.simulation.findRoute(from_edge, to_edge, vType="DEFAULT_VEHTYPE").edges)
+            except self._exc as e:
+                raise SimulationError(f"no route for the ego from {from_edge} to {to_edge}: {e}") from None
+            if not edges:
+                raise SimulationError(f"no route for the ego from {from_edge} to {to_edge}")
+        elif from_edge:
+            edges = [from_edge]
+        else:
+            edges = [self._any_edge_for(vclass)]
+        self._ego_spec["edges"] = edges
+        self._readd_ego()
+
+    def _any_edge_for(self, vclass: str) -> str:
+        s = self._sim
+        for e in s.edge.getIDList():
+            if e.startswith(":"):
+                continue
+            lane = f"{e}_0"
+            try:
+                if vclass in s.lane.getAllowed(lane) or (not s.lane.getAllowed(lane) and
+                                                         vclass not in s.lane.getDisallowed(lane)):
+                    return e
+            except self._exc:
+                continue
+        raise SimulationError(f"the network has no edge a {vclass} may use for the ego")
+
+    def _ensure_type(self, type_id: str, params: dict, person: bool = False):
+        s = self._sim
+        if type_id in s.vehicletype.getIDList():
+            return
+        s.vehicletype.copy("DEFAULT_PEDTYPE" if person else "DEFAULT_VEHTYPE", type_id)
+        if "vclass" in params:
+            s.vehicletype.setVehicleClass(type_id, params["vclass"])
+        for key, fn in (("length", s.vehicletype.setLength), ("width", s.vehicletype.setWidth),
+                        ("height", s.vehicletype.setHeight), ("max_speed", s.vehicletype.setMaxSpeed),
+                        ("accel", s.vehicletype.setAccel), ("decel", s.vehicletype.setDecel),
+                        ("min_gap", s.vehicletype.setMinGap)):
+            if params.get(key) is not None:
+                fn(type_id, float(params[key]))
+
+    def _readd_ego(self):
+        s, spec = self._sim, self._ego_spec
+        type_id = "cosim_ego"
+        try:
+            self._ensure_type(type_id, spec)
+            rid = f"cosim_ego_route_{self._generation}_{self.stats.steps}"
+            s.route.add(rid, spec["edges"])
+            s.vehicle.add(EGO_ID, rid, typeID=type_id, depart="now", departLane="best")
+            s.vehicle.setSpeedMode(EGO_ID, 0)
+            s.vehicle.setLaneChangeMode(EGO_ID, 0)
+        except self._exc as e:
+            raise SimulationError(f"cannot add the ego vehicle to SUMO: {e}") from None
+        self._ego_added = True
+
+    def set_ego_pose(self, x: float, y: float, yaw: float, speed: float = 0.0,
+                     edge_hint: str | None = None, lane_hint: int | None = None) -> bool:
+        """Place the ego: world body centre (m) and yaw (rad, 0 = east, CCW), speed in m/s.
+
+        Takes effect in the next step(). A pose off SUMO's roads is accepted (the ego then has
+        no lane and SUMO's drivers ignore it until it is back on a road: ``ego_state()['lane']``
+        is ''); returns False only when SUMO rejects the pose.
+        """
+        s = self._require()
+        if not self._ego_added:
+            raise SimulationError("add_ego() must come before set_ego_pose()")
+        angle = yaw_to_sumo_angle(yaw)
+        fx, fy = center_to_front(x, y, angle, self._ego_spec["length"])
+        try:
+            s.vehicle.moveToXY(EGO_ID, edge_hint or "", -1 if lane_hint is None else int(lane_hint),
+                               fx, fy, angle, keepRoute=2)
+        except self._exc as e:
+            if not self._ego_off_network:
+                log.info("SUMO cannot map the ego at (%.1f, %.1f): %s", x, y, e)
+            self._ego_off_network = True
+            return False
+        self._ego_off_network = False
+        self._ego_pending_speed = max(0.0, float(speed))
+        return True
+
+    def ego_state(self) -> dict | None:
+        """The ego as SUMO sees it (centre, yaw, speed, road, lane), or None if not in SUMO."""
+        if not self._ego_in_sim:
+            return None
+        s = self._sim
+        fx, fy = s.vehicle.getPosition(EGO_ID)
+        angle = s.vehicle.getAngle(EGO_ID)
+        cx, cy = front_to_center(fx, fy, angle, self._ego_spec["length"])
+        return dict(x=cx, y=cy, front=(fx, fy), yaw=sumo_angle_to_yaw(angle), angle=angle,
+                    speed=s.vehicle.getSpeed(EGO_ID), edge=s.vehicle.getRoadID(EGO_ID),
+                    lane=s.vehicle.getLaneID(EGO_ID))
+
+    # --- actors -------------------------------------------------------------------------
+    def _vehicle_vars(self):
+        tc = self._tc
+        return [tc.VAR_POSITION, tc.VAR_ANGLE, tc.VAR_SPEED, tc.VAR_VEHICLECLASS, tc.VAR_LENGTH,
+                tc.VAR_WIDTH, tc.VAR_HEIGHT, tc.VAR_SLOPE]
+
+    def _person_vars(self):
+        tc = self._tc
+        # VAR_VEHICLE (the vehicle a person rides in) marks person entries: both context
+        # domains' results arrive in one dict keyed by object id. Sizes come from the person's
+        # type (libsumo files a person context's VAR_LENGTH under the type id, not the person)
+        return [tc.VAR_POSITION, tc.VAR_ANGLE, tc.VAR_SPEED, tc.VAR_VEHICLE, tc.VAR_TYPE,
+                tc.VAR_SLOPE]
+
+    def _type_dims(self, type_id: str) -> tuple[float, float, float]:
+        dims = self._dims_cache.get(type_id)
+        if dims is None:
+            vt = self._sim.vehicletype
+            dims = (vt.getLength(type_id), vt.getWidth(type_id), vt.getHeight(type_id))
+            self._dims_cache[type_id] = dims
+        return dims
+
+    def _domain(self, anchor: str):
+        return self._sim.vehicle if anchor == EGO_ID else self._sim.poi
+
+    def _subscribe_context(self, anchor: str, radius: float):
+        tc = self._tc
+        dom = self._domain(anchor)
+        if self._ctx_anchor and self._ctx_anchor != anchor:
+            self._unsubscribe_context()
+        if self._probe_radius is not None:   # the ego takes over from the probe
+            r, self._probe_radius = self._probe_radius, None
+            try:
+                self._sim.poi.unsubscribeContext(PROBE_ID, tc.CMD_GET_VEHICLE_VARIABLE, r)
+                self._sim.poi.unsubscribeContext(PROBE_ID, tc.CMD_GET_PERSON_VARIABLE, r)
+            except self._exc:
+                pass
+        dom.subscribeContext(anchor, tc.CMD_GET_VEHICLE_VARIABLE, radius, self._vehicle_vars())
+        dom.subscribeContext(anchor, tc.CMD_GET_PERSON_VARIABLE, radius, self._person_vars())
+        self._ctx_anchor, self._ctx_radius = anchor, radius
+
+    def _unsubscribe_context(self):
+        tc = self._tc
+        old = self._ctx_anchor
+        self._ctx_anchor = None
+        if old is None:
+            return
+        try:
+            dom = self._domain(old)
+            dom.unsubscribeContext(old, tc.CMD_GET_VEHICLE_VARIABLE, self._ctx_radius)
+            dom.unsubscribeContext(old, tc.CMD_GET_PERSON_VARIABLE, self._ctx_radius)
+        except self._exc:
+            pass
+
+    def _context_results(self, x: float, y: float, radius: float) -> dict:
+        s, tc = self._sim, self._tc
+        if self._ego_in_sim:
+            if self._ctx_anchor != EGO_ID or radius + CONTEXT_MARGIN > self._ctx_radius:
+                self._subscribe_context(EGO_ID, max(radius + CONTEXT_MARGIN, self._ctx_radius))
+            res = s.vehicle.getContextSubscriptionResults(EGO_ID) or {}
+            e = res.get(EGO_ID)
+            if e is None:
+                return res
+            # complete if every actor whose centre is within radius of (x, y) has its front
+            # within the subscription range of the ego's front (actors are at most 2 * 6 m long)
+            d = math.hypot(e[tc.VAR_POSITION][0] - x, e[tc.VAR_POSITION][1] - y)
+            if d + radius + 7.0 <= self._ctx_radius:
+                return res
+            if d <= 2 * CONTEXT_MARGIN:   # widen the ego's range; results come back at once
+                self._subscribe_context(EGO_ID, d + radius + CONTEXT_MARGIN)
+                return s.vehicle.getContextSubscriptionResults(EGO_ID) or {}
+        # a query without an ego (or far from it): a hidden POI at (x, y) is the anchor;
+        # subscribing returns results for the current state at once
+        if PROBE_ID not in s.poi.getIDList():
+            s.poi.add(PROBE_ID, x, y, (0, 0, 0, 0), "cosim_probe")
+        if self._probe_xy != (x, y):
+            s.poi.setPosition(PROBE_ID, x, y)
+            self._probe_xy = (x, y)
+        r = radius + CONTEXT_MARGIN
+        s.poi.subscribeContext(PROBE_ID, tc.CMD_GET_VEHICLE_VARIABLE, r, self._vehicle_vars())
+        s.poi.subscribeContext(PROBE_ID, tc.CMD_GET_PERSON_VARIABLE, r, self._person_vars())
+        self._probe_radius = r
+        return s.poi.getContextSubscriptionResults(PROBE_ID) or {}
+
+    def actors_near(self, x: float, y: float, radius: float) -> ActorsSnapshot:
+        """Vehicles and walking persons whose body centre is within ``radius`` m of (x, y).
+
+        Uses the context subscription on the ego (one batched query per step); the ego itself
+        and persons riding in vehicles are excluded.
+        """
+        self._require()
+        tc = self._tc
+        try:
+            res = self._context_results(float(x), float(y), float(radius))
+        except self._exc as e:
+            raise SimulationError(f"SUMO actor query failed: {e}") from None
+        n = len(res)
+        ids = np.empty(n, dtype=object)
+        kind = np.empty(n, dtype=object)
+        a = np.zeros((8, n))
+        k = 0
+        for aid, v in res.items():
+            if aid == EGO_ID or tc.VAR_POSITION not in v:
+                continue
+            if tc.VAR_VEHICLE in v:          # a person
+                if v[tc.VAR_VEHICLE]:
+                    continue                 # riding: drawn as part of the vehicle
+                kind[k] = "person"
+                length, width, height = self._type_dims(v[tc.VAR_TYPE])
+            else:
+                kind[k] = v.get(tc.VAR_VEHICLECLASS, "passenger")
+                length, width, height = v[tc.VAR_LENGTH], v[tc.VAR_WIDTH], v[tc.VAR_HEIGHT]
+            ids[k] = aid
+            px, py = v[tc.VAR_POSITION][:2]
+            a[:, k] = (px, py, v[tc.VAR_ANGLE], length, width, height, v[tc.VAR_SPEED],
+                       v.get(tc.VAR_SLOPE, 0.0))
+            k += 1
+        ids, kind, a = ids[:k], kind[:k], a[:, :k]
+        cx, cy = front_to_center(a[0], a[1], a[2], a[3])
+        cx, cy = np.atleast_1d(cx), np.atleast_1d(cy)
+        keep = np.hypot(cx - x, cy - y) <= radius
+        return ActorsSnapshot(self.sim_time, ids[keep], kind[keep], cx[keep], cy[keep],
+                              np.atleast_1d(sumo_angle_to_yaw(a[2]))[keep], a[3][keep], a[4][keep],
+                              a[5][keep], a[6][keep], a[7][keep])
+
+    def actors_near_getters(self, x: float, y: float, radius: float) -> ActorsSnapshot:
+        """Same result as :meth:`actors_near` with per-actor getter calls (reference/benchmark)."""
+        s = self._require()
+        rows = []
+        for vid in s.vehicle.getIDList():
+            if vid == EGO_ID:
+                continue
+            px, py = s.vehicle.getPosition(vid)
+            if math.hypot(px - x, py - y) > radius + CONTEXT_MARGIN:
+                continue
+            rows.append((vid, s.vehicle.getVehicleClass(vid), px, py, s.vehicle.getAngle(vid),
+                         s.vehicle.getLength(vid), s.vehicle.getWidth(vid), s.vehicle.getHeight(vid),
+                         s.vehicle.getSpeed(vid), s.vehicle.getSlope(vid)))
+        for pid in s.person.getIDList():
+            px, py = s.person.getPosition(pid)
+            if math.hypot(px - x, py - y) > radius + CONTEXT_MARGIN or s.person.getVehicle(pid):
+                continue
+            rows.append((pid, "person", px, py, s.person.getAngle(pid), s.person.getLength(pid),
+                         s.person.getWidth(pid), s.person.getHeight(pid), s.person.getSpeed(pid),
+                         s.person.getSlope(pid)))
+        if not rows:
+            return ActorsSnapshot.empty(self.sim_time)
+        ids = np.array([r[0] for r in rows], dtype=object)
+        kind = np.array([r[1] for r in rows], dtype=object)
+        a = np.array([r[2:] for r in rows], dtype=float).T
+        cx, cy = front_to_center(a[0], a[1], a[2], a[3])
+        keep = np.hypot(cx - x, cy - y) <= radius
+        return ActorsSnapshot(self.sim_time, ids[keep], kind[keep], cx[keep], cy[keep],
+                              sumo_angle_to_yaw(a[2])[keep], a[3][keep], a[4][keep], a[5][keep],
+                              a[6][keep], a[7][keep])
+
+    # --- traffic lights -----------------------------------------------------------------
+    def tls_states(self) -> dict[str, str]:
+        """tls id -> SUMO state string ('rGyy...', one char per controlled link)."""
+        s = self._require()
+        tc = self._tc
+        res = s.trafficlight.getAllSubscriptionResults()
+        out = {tid: v[tc.TL_RED_YELLOW_GREEN_STATE] for tid, v in res.items()
+               if tc.TL_RED_YELLOW_GREEN_STATE in v}
+        out.update(self._tls_fresh)
+        return out
+
+    def set_tls_state(self, tls_id: str, state: str) -> None:
+        """Force a traffic light's state (it stays until the program is set again)."""
+        s = self._require()
+        try:
+            s.trafficlight.setRedYellowGreenState(tls_id, state)
+        except self._exc as e:
+            raise SimulationError(f"cannot set traffic light {tls_id}: {e}") from None
+        self._tls_fresh[tls_id] = state
+
+    def ego_next_tls(self) -> tuple[str, float, str] | None:
+        """(tls id, distance in m from the ego's front to the stop line, state char) or None."""
+        s = self._require()
+        if not self._ego_in_sim:
+            return None
+        try:
+            nxt = s.vehicle.getNextTLS(EGO_ID)
+            if nxt:
+                tid, idx, dist, state = nxt[0]
+                return tid, float(dist), self._tls_fresh.get(tid, "")[idx:idx + 1] or state
+            # the ego's route may end on this edge (moveToXY replaced it): use the lane's link
+            lane = s.vehicle.getLaneID(EGO_ID)
+            hit = self._lane_tls.get(lane)
+            if not hit:
+                return None
+            tid, idx = hit
+            dist = s.lane.getLength(lane) - s.vehicle.getLanePosition(EGO_ID)
+            state = self.tls_states().get(tid) or s.trafficlight.getRedYellowGreenState(tid)
+            return tid, float(dist), state[idx]
+        except self._exc:
+            return None
+
+    # --- network swap -------------------------------------------------------------------
+    def swap_network(self, new_net, new_routes: Sequence = (), keep_radius: float = 100.0,
+                     center: tuple[float, float] | None = None) -> dict[str, str]:
+        """Restart SUMO on another network, carrying the actors near the ego across.
+
+        Vehicles and walking persons whose centre is within ``keep_radius`` of the ego (or of
+        ``center``) are re-inserted at the same position, heading and speed, with the rest of
+        their route where the new network has it. Simulation time continues: after the swap
+        ``sim_time`` is the time before it and the kept actors stand where they stood. Kept
+        actors get new SUMO ids (``<id>~<n>``) so they cannot clash with the new demand; the
+        return value maps old id -> new id (for the mirror to re-key its bodies).
+        """
+        s = self._require()
+        ego = self.ego_state() if self._ego_in_sim else None
+        if center is None:
+            if ego is None:
+                raise SimulationError("swap_network needs the ego in SUMO or an explicit center")
+            center = (ego["x"], ego["y"])
+        cx, cy = float(center[0]), float(center[1])
+        t_before = self.sim_time
+        try:
+            kept = self._capture(cx, cy, float(keep_radius))
+        except self._exc as e:
+            raise SimulationError(f"cannot read SUMO state for the swap: {e}") from None
+        ego_spec = dict(self._ego_spec) if self._ego_added else None
+        ego_speed = self._ego_pending_speed
+        stats = self.stats
+        self.teardown()
+        self.net_file = Path(new_net)
+        if isinstance(new_routes, (str, os.PathLike)):
+            new_routes = [new_routes]
+        self.route_files = [Path(p) for p in new_routes]
+        self._generation += 1
+        self.setup()
+        self.stats = stats
+        s = self._sim
+        mapping: dict[str, str] = {}
+        for k in kept:
+            base = k.old_id.split("~")[0]
+            new_id = f"{base}~{self._generation}"
+            try:
+                if self._insert_kept(k, new_id):
+                    mapping[k.old_id] = new_id
+            except self._exc as e:
+                log.info("swap: could not carry %s over: %s", k.old_id, e)
+        if ego_spec is not None:
+            self._ego_spec = ego_spec
+            if ego is not None:
+                self._ego_spec["edges"] = [ego["edge"]] if ego["edge"] in set(
+                    s.edge.getIDList()) else [self._any_edge_for(ego_spec["vclass"])]
+            self._readd_ego()
+            if ego is not None:
+                self.set_ego_pose(ego["x"], ego["y"], ego["yaw"], ego_speed or ego["speed"])
+        # Two steps settle the carried actors; the clock is shifted so that sim_time after them
+        # equals the time before the swap. Step 1 inserts everything at the captured positions.
+        # Step 2 holds vehicles there (their speed is then set explicitly) and lets persons walk
+        # on by themselves (SUMO derives a moved person's speed from the distance it was moved,
+        # which is meaningless for the insertion jump), so persons end up at most one step of
+        # walking (~0.15 m) ahead.
+        self._time_offset = t_before - 2 * self.step_length
+        self.step()
+        for k in kept:
+            nid = mapping.get(k.old_id)
+            if nid is None:
+                continue
+            try:
+                if not k.person:
+                    s.vehicle.moveToXY(nid, "", k.lane, k.x, k.y, k.angle, keepRoute=2)
+            except self._exc as e:
+                log.debug("swap: %s: %s", nid, e)
+        if ego_spec is not None and ego is not None:
+            self.set_ego_pose(ego["x"], ego["y"], ego["yaw"], ego_speed or ego["speed"])
+        self.step()
+        self.stats.steps -= 2
+        for k in kept:
+            nid = mapping.get(k.old_id)
+            if nid is None or k.person:
+                continue
+            try:
+                s.vehicle.setPreviousSpeed(nid, k.speed)
+            except self._exc:
+                pass
+        if self._ctx_anchor is not None:   # refresh: the results of step 2 predate the speeds
+            self._subscribe_context(self._ctx_anchor, self._ctx_radius)
+        log.info("swap_network: %s, kept %d of %d actors within %.0f m", self.net_file.name,
+                 len(mapping), len(kept), keep_radius)
+        return mapping
+
+    def _capture(self, cx: float, cy: float, radius: float) -> list[_Kept]:
+        s = self._sim
+        snap = self.actors_near_getters(cx, cy, radius)
+        kept = []
+        for aid, kind in zip(snap.ids, snap.kind):
+            person = kind == "person"
+            if person:
+                p = s.person
+                tid = p.getTypeID(aid)
+                edge = p.getRoadID(aid)
+                edges = list(p.getEdges(aid))
+                edges = edges[self._person_walk_index(aid, edge, edges):]
+                try:
+                    stage = p.getStage(aid)
+                    arrival = float(stage.arrivalPos)
+                except Exception:
+                    arrival = None
+                kept.append(_Kept(aid, True, tid, dict(
+                    length=p.getLength(aid), width=p.getWidth(aid), height=p.getHeight(aid),
+                    vclass="pedestrian", max_speed=s.vehicletype.getMaxSpeed(tid)),
+                    *p.getPosition(aid), p.getAngle(aid), p.getSpeed(aid), edge, 0,
+                    p.getLanePosition(aid), edges, arrival))
+            else:
+                v = s.vehicle
+                tid = v.getTypeID(aid)
+                route = list(v.getRoute(aid))
+                idx = max(0, v.getRouteIndex(aid))
+                kept.append(_Kept(aid, False, tid, dict(
+                    length=v.getLength(aid), width=v.getWidth(aid), height=v.getHeight(aid),
+                    vclass=v.getVehicleClass(aid), max_speed=s.vehicletype.getMaxSpeed(tid),
+                    accel=v.getAccel(aid), decel=v.getDecel(aid), min_gap=v.getMinGap(aid)),
+                    *v.getPosition(aid), v.getAngle(aid), v.getSpeed(aid), v.getRoadID(aid),
+                    v.getLaneIndex(aid), v.getLanePosition(aid), route[idx:],
+                    v.getArrivalPos(aid) if hasattr(v, "getArrivalPos") else None))
+        return kept
+
+    def _person_walk_index(self, pid: str, road: str, edges: list) -> int:
+        """Index in the walk's edges of the edge the person is on or walks onto next."""
+        if road in edges:
+            return edges.index(road)
+        s = self._sim
+        nxt = s.person.getNextEdge(pid) if road.startswith(":") else ""
+        if nxt in edges:
+            return edges.index(nxt)
+        # on a walking area / crossing of junction J: the next edge is the first one that
+        # starts at J after one that ends there
+        junction = (nxt or road)[1:].rsplit("_", 1)[0] if (nxt or road).startswith(":") else ""
+        if junction:
+            ends = {e: (s.edge.getFromJunction(e), s.edge.getToJunction(e)) for e in edges}
+            for j in range(1, len(edges)):
+                if junction in ends[edges[j - 1]] and junction in ends[edges[j]]:
+                    return j
+        return 0
+
+    def _insert_kept(self, k: _Kept, new_id: str) -> bool:
+        s = self._sim
+        edges_known = self._edge_set()
+        self._ensure_type(k.type_id, k.type_params, person=k.person)
+        vclass = "pedestrian" if k.person else k.type_params.get("vclass", "passenger")
+        edges = [e for e in k.edges if e in edges_known]
+        # the edge under the actor in the new network
+        try:
+            road, pos, lane = s.simulation.convertRoad(k.x, k.y, False, vclass)
+        except self._exc:
+            road, pos, lane = (k.edge, k.lane_pos, k.lane) if k.edge in edges_known else ("", 0.0, 0)
+        if road.startswith(":"):
+            road = edges[0] if edges else ""
+        if not road:
+            return False
+        if not edges or edges[0] != road:
+            if edges and road in edges:
+                edges = edges[edges.index(road):]
+            elif edges:
+                try:
+                    r = (s.simulation.findIntermodalRoute(road, edges[-1], modes="")
+                         if k.person else s.simulation.findRoute(road, edges[-1], vType=k.type_id))
+                    found = [e for st in r for e in st.edges] if k.person else list(r.edges)
+                except self._exc:
+                    found = []
+                edges = found or [road]
+            else:
+                edges = [road]
+        if k.person:
+            s.person.add(new_id, edges[0], max(0.0, float(pos)), depart=-3, typeID=k.type_id)
+            if k.speed > 0.5:   # walking: keep the pace (a new person draws a new speed factor)
+                s.person.setSpeed(new_id, k.speed)
+            arr = k.arrival_pos if (k.arrival_pos is not None and edges[-1] == (k.edges or [None])[-1]) else -1
+            s.person.appendWalkingStage(new_id, edges, arr if arr is not None else -1)
+            s.person.moveToXY(new_id, edges[0], k.x, k.y, k.angle, keepRoute=2)
+        else:
+            rid = f"cosim_keep_{new_id}"
+            s.route.add(rid, edges)
+            s.vehicle.add(new_id, rid, typeID=k.type_id, depart="now",
+                          departLane=str(lane) if lane >= 0 else "best",
+                          departPos=f"{max(0.0, pos):.2f}", departSpeed=f"{max(0.0, k.speed):.2f}")
+            s.vehicle.moveToXY(new_id, edges[0], lane, k.x, k.y, k.angle, keepRoute=2)
+        return True
+
+    def _edge_set(self) -> set:
+        if getattr(self, "_edges_cache_gen", None) != (self._generation, str(self.net_file)):
+            self._edges_cache = set(self._sim.edge.getIDList())
+            self._edges_cache_gen = (self._generation, str(self.net_file))
+        return self._edges_cache

@@ -1,0 +1,446 @@
+"""SUMO traffic and demand on a real network (Helsinki preset), real libsumo / sumo binaries."""
+from __future__ import annotations
+
+import hashlib
+import math
+
+import numpy as np
+import pytest
+
+from cosim.demand import DENSITY_PRESETS, generate_demand, parse_density, plan_demand
+from cosim.traffic import (EGO_ID, SumoTraffic, center_to_front, front_to_center,
+                           sumo_angle_to_yaw, yaw_to_sumo_angle)
+from netgen.errors import InputError, SimulationError
+
+from sumo_fixtures import build_helsinki
+
+
+# --- fixtures -------------------------------------------------------------------------------
+@pytest.fixture(scope="session")
+def helsinki_net(tmp_path_factory):
+    return build_helsinki(tmp_path_factory.mktemp("sumo-net"))
+
+
+@pytest.fixture(scope="session")
+def demand_dir(tmp_path_factory):
+    return tmp_path_factory.mktemp("demand")
+
+
+@pytest.fixture(scope="session")
+def dense(helsinki_net, demand_dir):
+    return generate_demand(helsinki_net, demand_dir, "dense", seed=1, duration=400)
+
+
+@pytest.fixture
+def traffic(helsinki_net):
+    """A SumoTraffic factory; every instance is torn down after the test."""
+    made = []
+
+    def make(routes=(), **kw):
+        t = SumoTraffic(helsinki_net, routes, **kw)
+        made.append(t)
+        t.setup()
+        return t
+
+    yield make
+    for t in made:
+        t.teardown()
+
+
+def sha(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def passenger_lanes(s, min_length, single_lane=False):
+    """(lane id, length) of non-internal lanes cars may use, longest first."""
+    out = []
+    for e in s.edge.getIDList():
+        if e.startswith(":"):
+            continue
+        n = s.edge.getLaneNumber(e)
+        if single_lane and n != 1:
+            continue
+        for i in range(n):
+            lane = f"{e}_{i}"
+            allowed = s.lane.getAllowed(lane)
+            if "passenger" in allowed and s.lane.getLength(lane) >= min_length:
+                out.append((lane, s.lane.getLength(lane)))
+    out.sort(key=lambda t: -t[1])
+    return out
+
+
+def lane_pose(s, lane, pos):
+    """SUMO front position and angle at ``pos`` m along ``lane``."""
+    edge, idx = lane.rsplit("_", 1)
+    x, y = s.simulation.convert2D(edge, pos, int(idx))
+    x2, y2 = s.simulation.convert2D(edge, min(pos + 1.0, s.lane.getLength(lane)), int(idx))
+    return x, y, math.degrees(math.atan2(x2 - x, y2 - y)) % 360.0
+
+
+# --- pure conversions -----------------------------------------------------------------------
+def test_angle_conversion_known_values():
+    assert sumo_angle_to_yaw(0.0) == pytest.approx(math.pi / 2)      # north
+    assert sumo_angle_to_yaw(90.0) == pytest.approx(0.0)             # east
+    assert sumo_angle_to_yaw(180.0) == pytest.approx(-math.pi / 2)   # south
+    assert abs(sumo_angle_to_yaw(270.0)) == pytest.approx(math.pi)   # west
+    assert yaw_to_sumo_angle(0.0) == pytest.approx(90.0)
+    assert yaw_to_sumo_angle(math.pi / 2) == pytest.approx(0.0)
+    assert yaw_to_sumo_angle(-math.pi / 2) == pytest.approx(180.0)
+    a = np.linspace(0, 359, 50)
+    back = yaw_to_sumo_angle(sumo_angle_to_yaw(a))
+    assert np.allclose(np.mod(back - a + 180, 360) - 180, 0, atol=1e-9)
+    yaw = np.asarray(sumo_angle_to_yaw(a))
+    assert np.all((yaw >= -math.pi) & (yaw < math.pi))
+
+
+def test_front_center_conversion():
+    # heading east (SUMO 90 deg), 4 m long: the centre is 2 m west of the front bumper
+    assert front_to_center(10.0, 5.0, 90.0, 4.0) == pytest.approx((8.0, 5.0))
+    # heading north: centre is south of the front
+    assert front_to_center(10.0, 5.0, 0.0, 4.0) == pytest.approx((10.0, 3.0))
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(-500, 500, 20), rng.uniform(-500, 500, 20)
+    ang, length = rng.uniform(0, 360, 20), rng.uniform(0.3, 12, 20)
+    cx, cy = front_to_center(x, y, ang, length)
+    fx, fy = center_to_front(cx, cy, ang, length)
+    assert np.allclose(fx, x) and np.allclose(fy, y)
+    assert np.allclose(np.hypot(cx - x, cy - y), length / 2)
+
+
+# --- demand ---------------------------------------------------------------------------------
+def test_density_parsing_and_plan(helsinki_net):
+    assert parse_density("dense") == DENSITY_PRESETS["dense"]
+    assert parse_density(" Light ") == DENSITY_PRESETS["light"]
+    assert parse_density("123.5") == 123.5 and parse_density(40) == 40.0
+    for bad in ("heavy", -1, "nan", 1e9):
+        with pytest.raises(InputError):
+            parse_density(bad)
+    plans = [plan_demand(helsinki_net, d) for d in ("light", "normal", "dense")]
+    assert 1.5 < plans[0].area_km2 < 1.9          # Helsinki centre: ~1.0 x 1.7 km
+    assert plans[0].vehicle_period > plans[1].vehicle_period > plans[2].vehicle_period
+    p = plans[2]
+    # Little's law: present = trip duration / period
+    assert p.vehicle_trip_s / p.vehicle_period == pytest.approx(p.vehicles)
+    assert p.person_trip_s / p.person_period == pytest.approx(p.persons)
+    assert plan_demand(helsinki_net, "none").vehicle_period == math.inf
+
+
+def test_demand_repeatable_and_seeded(helsinki_net, tmp_path):
+    a = generate_demand(helsinki_net, tmp_path / "a", "light", seed=7, duration=90)
+    b = generate_demand(helsinki_net, tmp_path / "b", "light", seed=7, duration=90)
+    c = generate_demand(helsinki_net, tmp_path / "a", "light", seed=8, duration=90)
+    assert not a.cached and not b.cached and a.folder != c.folder
+    assert a.n_vehicles > 0 and a.n_persons > 0
+    assert sha(a.vehicles_file) == sha(b.vehicles_file)
+    assert sha(a.persons_file) == sha(b.persons_file)
+    assert sha(a.vehicles_file) != sha(c.vehicles_file)
+    assert sha(a.persons_file) != sha(c.persons_file)
+    again = generate_demand(helsinki_net, tmp_path / "a", "light", seed=7, duration=90)
+    assert again.cached and again.folder == a.folder
+    assert sha(again.vehicles_file) == sha(a.vehicles_file)
+    text = a.vehicles_file.read_text()
+    for vtype, length, width in (("car", 4.5, 1.8), ("truck", 10.0, 2.5), ("bus", 12.0, 2.5)):
+        assert f'id="{vtype}" ' in text and f'length="{length}" width="{width}"' in text
+    assert 'type="car"' in text and 'type="truck"' in text
+    assert not list(tmp_path.rglob("*.tmp-*"))   # atomic writes leave nothing behind
+
+
+def test_demand_errors(tmp_path):
+    with pytest.raises(Exception) as ei:
+        generate_demand(tmp_path / "missing.net.xml", tmp_path, "light")
+    assert "does not exist" in str(ei.value) and "\n" not in str(ei.value)
+    bad = tmp_path / "bad.net.xml"
+    bad.write_text("<net><garbage")
+    with pytest.raises(Exception) as ei:
+        generate_demand(bad, tmp_path, "light")
+    assert "not a SUMO network" in str(ei.value)
+
+
+def test_density_levels_give_increasing_counts(helsinki_net, demand_dir, traffic):
+    counts = {}
+    for name in ("light", "normal", "dense"):
+        d = generate_demand(helsinki_net, demand_dir, name, seed=3, duration=90)
+        t = traffic(d.route_files, step_length=0.5, seed=3)
+        while t.sim_time < 60.0:
+            t.step()
+        counts[name] = (t.stats.vehicles, t.stats.persons)
+        t.teardown()
+    print("present after 60 s (vehicles, persons):", counts)
+    assert counts["light"][0] < counts["normal"][0] < counts["dense"][0]
+    assert counts["light"][1] < counts["normal"][1] < counts["dense"][1]
+    assert counts["light"][0] > 0
+
+
+def test_dense_after_300s_has_hundreds_on_sidewalks(dense, traffic):
+    t = traffic(dense.route_files, step_length=0.25, seed=1)
+    while t.sim_time < 300.0 - 1e-9:
+        t.step()
+    s = t.sumo
+    n_veh = len(s.vehicle.getIDList())
+    walking = [p for p in s.person.getIDList() if s.person.getRoadID(p)]
+    print(f"dense after {t.sim_time:.0f} s: {n_veh} vehicles, {len(walking)} persons walking, "
+          f"{t.stats.teleports} teleports, {t.stats.collisions} collisions")
+    assert n_veh >= 200
+    assert t.stats.vehicles == n_veh
+    assert len(walking) >= 50
+    # person.getIDCount() also counts persons loaded but not departed; ours must not
+    assert t.stats.persons == len(walking)
+    assert s.person.getIDCount() >= len(walking)
+    for p in walking:
+        lane = s.person.getLaneID(p)
+        assert "pedestrian" in s.lane.getAllowed(lane), (p, lane)
+    kinds = set(s.vehicle.getVehicleClass(v) for v in s.vehicle.getIDList())
+    assert {"passenger", "truck"} <= kinds
+
+
+# --- ego ------------------------------------------------------------------------------------
+def test_ego_injected_where_placed(traffic):
+    t = traffic()
+    s = t.sumo
+    lane, length = passenger_lanes(s, 60.0)[0]
+    fx, fy, angle = lane_pose(s, lane, length / 2)
+    cx, cy = front_to_center(fx, fy, angle, 4.5)
+    t.add_ego([lane.rsplit("_", 1)[0]])
+    yaw = sumo_angle_to_yaw(angle)
+    assert t.set_ego_pose(cx, cy, yaw, speed=3.0)
+    t.step()
+    px, py = s.vehicle.getPosition(EGO_ID)
+    assert math.hypot(px - fx, py - fy) < 0.1
+    assert abs((s.vehicle.getAngle(EGO_ID) - angle + 180) % 360 - 180) < 0.5
+    assert s.vehicle.getLaneID(EGO_ID) == lane
+    assert s.vehicle.getSpeed(EGO_ID) == pytest.approx(3.0)
+    st = t.ego_state()
+    assert math.hypot(st["x"] - cx, st["y"] - cy) < 0.1
+    assert abs(math.remainder(st["yaw"] - yaw, 2 * math.pi)) < 0.01
+    # the ego moves with the poses it is given, and is never an actor
+    cx2, cy2 = cx + math.cos(yaw) * 1.0, cy + math.sin(yaw) * 1.0
+    t.set_ego_pose(cx2, cy2, yaw, speed=10.0)
+    t.step()
+    assert math.hypot(t.ego_state()["x"] - cx2, t.ego_state()["y"] - cy2) < 0.1
+    assert EGO_ID not in t.actors_near(cx2, cy2, 100.0).ids
+    assert t.stats.vehicles == 0
+
+
+def test_sumo_car_brakes_behind_stationary_ego(traffic):
+    t = traffic(seed=2)
+    s = t.sumo
+    lane, length = (passenger_lanes(s, 90.0, single_lane=True) or passenger_lanes(s, 90.0))[0]
+    edge = lane.rsplit("_", 1)[0]
+    ego_front = length - 5.0
+    fx, fy, angle = lane_pose(s, lane, ego_front)
+    t.add_ego([edge])
+    cx, cy = front_to_center(fx, fy, angle, 4.5)
+    t.set_ego_pose(cx, cy, sumo_angle_to_yaw(angle), 0.0)
+    t.step()
+    s.route.add("r_follower", [edge])
+    s.vehicle.add("follower", "r_follower", typeID="DEFAULT_VEHTYPE", depart="now",
+                  departPos="0", departSpeed="max", departLane=lane.rsplit("_", 1)[1])
+    s.vehicle.setLaneChangeMode("follower", 0)   # it must brake, not overtake
+    max_speed = 0.0
+    for _ in range(int(60 / t.step_length)):
+        t.set_ego_pose(cx, cy, sumo_angle_to_yaw(angle), 0.0)
+        t.step()
+        if "follower" in s.vehicle.getIDList():
+            max_speed = max(max_speed, s.vehicle.getSpeed("follower"))
+    assert "follower" in s.vehicle.getIDList()        # did not drive through / past the ego
+    assert max_speed > 5.0                            # it was really driving towards the ego
+    assert s.vehicle.getSpeed("follower") < 0.1       # and stopped
+    gap = (ego_front - 4.5) - s.vehicle.getLanePosition("follower")
+    leader = s.vehicle.getLeader("follower", 100.0)
+    print(f"follower stopped {gap:.2f} m behind the ego on {lane} ({length:.0f} m)")
+    assert leader and leader[0] == EGO_ID
+    assert 0.5 < gap < 10.0
+    assert t.stats.collisions == 0
+
+
+def test_actors_near_radius_and_centres(dense, traffic):
+    t = traffic(dense.route_files, step_length=0.2, seed=1)
+    while t.sim_time < 40.0:
+        t.step()
+    s = t.sumo
+    # the ego sits on a busy lane: the lane of some vehicle
+    vid = s.vehicle.getIDList()[len(s.vehicle.getIDList()) // 2]
+    lane = s.vehicle.getLaneID(vid)
+    fx, fy, angle = lane_pose(s, lane, min(5.0, s.lane.getLength(lane) / 2))
+    cx, cy = front_to_center(fx, fy, angle, 4.5)
+    t.add_ego([lane.rsplit("_", 1)[0]])
+    t.set_ego_pose(cx, cy, sumo_angle_to_yaw(angle), 0.0)
+    t.step()
+    radius = 80.0
+    snap = t.actors_near(cx, cy, radius)
+    ref = t.actors_near_getters(cx, cy, radius)
+    assert len(snap) >= 5
+    assert sorted(snap.ids) == sorted(ref.ids)
+    assert np.all(np.hypot(snap.x - cx, snap.y - cy) <= radius)
+    assert set(snap.kind) <= {"passenger", "truck", "bus", "person"}
+    # every actor SUMO has within the radius (by centre) is returned
+    for v in s.vehicle.getIDList():
+        if v == EGO_ID:
+            continue
+        x, y = front_to_center(*s.vehicle.getPosition(v), s.vehicle.getAngle(v),
+                               s.vehicle.getLength(v))
+        assert (math.hypot(x - cx, y - cy) <= radius) == (v in snap.ids), v
+    # centre conversion against SUMO's getters for a known vehicle
+    veh = [i for i, k in zip(snap.ids, snap.kind) if k != "person"]
+    assert veh
+    for aid in veh:
+        i = snap.index(aid)
+        px, py = s.vehicle.getPosition(aid)
+        ang, length = s.vehicle.getAngle(aid), s.vehicle.getLength(aid)
+        a = math.radians(ang)
+        assert snap.x[i] == pytest.approx(px - math.sin(a) * length / 2, abs=1e-6)
+        assert snap.y[i] == pytest.approx(py - math.cos(a) * length / 2, abs=1e-6)
+        assert abs(math.remainder(snap.yaw[i] - math.radians(90 - ang), 2 * math.pi)) < 1e-6
+        assert snap.length[i] == pytest.approx(length)
+        assert snap.width[i] == pytest.approx(s.vehicle.getWidth(aid))
+        assert snap.speed[i] == pytest.approx(s.vehicle.getSpeed(aid))
+    # a smaller radius gives a subset; a query without ego nearby works through the probe
+    small = t.actors_near(cx, cy, 20.0)
+    assert set(small.ids) <= set(snap.ids)
+    far = t.actors_near(cx + 400.0, cy, 60.0)
+    ref_far = t.actors_near_getters(cx + 400.0, cy, 60.0)
+    assert sorted(far.ids) == sorted(ref_far.ids)
+
+
+# --- traffic lights -------------------------------------------------------------------------
+def test_forced_red_reported_by_ego_next_tls(traffic):
+    t = traffic()
+    s = t.sumo
+    states = t.tls_states()
+    assert len(states) > 50 and all(set(v) <= set("rRyYgGuoOs") for v in states.values())
+    cands = [(lane, tid, idx) for lane, (tid, idx) in t._lane_tls.items()
+             if not lane.startswith(":") and s.lane.getLength(lane) > 30.0
+             and "passenger" in s.lane.getAllowed(lane)]
+    assert cands
+    lane, tid, _ = cands[0]
+    length = s.lane.getLength(lane)
+    front = length - 12.0
+    fx, fy, angle = lane_pose(s, lane, front)
+    t.add_ego([lane.rsplit("_", 1)[0]])
+    cx, cy = front_to_center(fx, fy, angle, 4.5)
+    t.set_ego_pose(cx, cy, sumo_angle_to_yaw(angle), 0.0)
+    t.step()
+    red = "r" * len(states[tid])
+    t.set_tls_state(tid, red)
+    assert t.tls_states()[tid] == red
+    t.set_ego_pose(cx, cy, sumo_angle_to_yaw(angle), 0.0)
+    t.step()
+    assert t.tls_states()[tid] == red      # stays red through steps
+    nxt = t.ego_next_tls()
+    assert nxt is not None
+    got_tid, dist, state = nxt
+    assert got_tid == tid and state == "r"
+    assert dist == pytest.approx(12.0, abs=1.0)
+    green = "G" * len(states[tid])
+    t.set_tls_state(tid, green)
+    t.step()
+    assert t.ego_next_tls()[2] in "gG"
+
+
+# --- errors and lifecycle -------------------------------------------------------------------
+def test_corrupt_net_gives_one_line_error(helsinki_net, tmp_path):
+    truncated = tmp_path / "truncated.net.xml"
+    truncated.write_bytes(helsinki_net.read_bytes()[:2_000_000])
+    garbage = tmp_path / "garbage.net.xml"
+    garbage.write_text("<net><garbage")
+    for path, words in ((truncated, "truncated.net.xml"), (garbage, "not a SUMO network"),
+                        (tmp_path / "missing.net.xml", "does not exist")):
+        t = SumoTraffic(path)
+        with pytest.raises(SimulationError) as ei:
+            t.setup()
+        msg = str(ei.value)
+        print(msg)
+        assert "\n" not in msg and words in msg
+        assert not t.running
+        t.teardown()   # harmless after a failed setup
+    # libsumo is still usable after the failures
+    ok = SumoTraffic(helsinki_net)
+    ok.setup()
+    ok.step()
+    assert ok.sim_time == pytest.approx(0.1)
+    ok.teardown()
+
+
+def test_libsumo_single_instance_and_restart(helsinki_net, dense):
+    a = SumoTraffic(helsinki_net, dense.route_files)
+    b = SumoTraffic(helsinki_net)
+    a.setup()
+    try:
+        with pytest.raises(SimulationError) as ei:
+            b.setup()
+        assert "one per process" in str(ei.value)
+        for _ in range(20):
+            a.step()
+        assert a.stats.vehicles > 0
+    finally:
+        a.teardown()
+    a.teardown()            # idempotent
+    assert not a.running
+    b.setup()               # libsumo restarts in the same process
+    b.step()
+    assert b.sim_time == pytest.approx(0.1)
+    b.teardown()
+    a.setup()
+    for _ in range(20):
+        a.step()
+    assert a.sim_time == pytest.approx(2.0) and a.stats.vehicles > 0
+    a.teardown()
+
+
+def test_traci_backend_runs(helsinki_net, dense, traffic):
+    t = traffic(dense.route_files, backend="traci", seed=1)
+    for _ in range(50):
+        t.step()
+    s = t.sumo
+    vid = s.vehicle.getIDList()[0]
+    x, y = s.vehicle.getPosition(vid)
+    snap = t.actors_near(x, y, 60.0)
+    ref = t.actors_near_getters(x, y, 60.0)
+    assert vid in snap.ids and sorted(snap.ids) == sorted(ref.ids)
+    assert t.sim_time == pytest.approx(5.0)
+    assert t.stats.vehicles == len(s.vehicle.getIDList()) > 0
+    assert len(t.tls_states()) > 50
+
+
+# --- network swap ---------------------------------------------------------------------------
+def test_swap_network_keeps_actors_near_ego(helsinki_net, dense, traffic):
+    t = traffic(dense.route_files, seed=1)
+    while t.sim_time < 30.0:
+        t.step()
+    s = t.sumo
+    # ego on the lane of a vehicle in the middle of the busiest area
+    vid = max(s.vehicle.getIDList(), key=lambda v: len(s.vehicle.getIDList()) and
+              -abs(s.vehicle.getPosition(v)[0] - 250) - abs(s.vehicle.getPosition(v)[1] - 300))
+    lane = s.vehicle.getLaneID(vid)
+    fx, fy, angle = lane_pose(s, lane, min(3.0, s.lane.getLength(lane) / 2))
+    cx, cy = front_to_center(fx, fy, angle, 4.5)
+    t.add_ego([lane.rsplit("_", 1)[0]])
+    t.set_ego_pose(cx, cy, sumo_angle_to_yaw(angle), 0.0)
+    t.step()
+    before = t.actors_near(cx, cy, 70.0)
+    assert len(before) >= 5
+    t_before = t.sim_time
+    mapping = t.swap_network(helsinki_net, dense.route_files, keep_radius=70.0)
+    assert t.sim_time == pytest.approx(t_before)
+    after = t.actors_near(cx, cy, 120.0)
+    moved = []
+    for i, old in enumerate(before.ids):
+        assert old in mapping, f"{old} was not carried over"
+        j = after.index(mapping[old])
+        d = math.hypot(after.x[j] - before.x[i], after.y[j] - before.y[i])
+        dv = abs(after.speed[j] - before.speed[i])
+        moved.append((d, dv, old, before.speed[i], after.speed[j]))
+        assert d < 1.0, (old, d)
+        assert dv < 1.0, (old, before.speed[i], after.speed[j])
+        assert after.kind[j] == before.kind[i]
+        assert after.length[j] == pytest.approx(before.length[i])
+    print(f"swap kept {len(mapping)} actors; max position error "
+          f"{max(m[0] for m in moved):.3f} m, max speed error {max(m[1] for m in moved):.3f} m/s",
+          max(moved, key=lambda m: m[1]))
+    ego = t.ego_state()
+    assert math.hypot(ego["x"] - cx, ego["y"] - cy) < 0.1
+    # the carried actors go on driving / walking afterwards
+    for _ in range(20):
+        t.step()
+    alive = [n for n in mapping.values() if n in s.vehicle.getIDList() or n in s.person.getIDList()]
+    assert len(alive) >= 0.8 * len(mapping)
