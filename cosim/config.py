@@ -59,6 +59,7 @@ class SimConfig:
     mirror_radius_m: float = 150.0        # SUMO actors within this radius are mirrored in PyBullet
     telemetry: str | None = None
     gui: bool = False                     # PyBullet's 3D window
+    render: bool = False                  # load visual meshes for camera images (the Qt GUI)
     realtime: bool = False                # pace the loop to wall-clock time (GUI use)
     name: str = ""
 
@@ -121,7 +122,7 @@ class SimConfig:
                    "respect_speed_limit": "respect_speed_limit", "max_snap_m": "max_snap_m",
                    "duration_s": "duration_s", "step_length_s": "step_length_s", "physics_hz": "physics_hz",
                    "sensor_range_m": "sensor_range_m", "mirror_radius_m": "mirror_radius_m",
-                   "telemetry": "telemetry", "gui": "gui", "realtime": "realtime"}
+                   "telemetry": "telemetry", "gui": "gui", "realtime": "realtime", "render": "render"}
         for table, tname in ((t, "traffic"), (e, "ego"), (r, "run")):
             for k, v in table.items():
                 if k not in mapping:

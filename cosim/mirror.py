@@ -29,6 +29,27 @@ def _size_key(kind, l, w, h):
     return (kind if kind in ("bus", "truck") else "car", round(l * 2) / 2, round(w * 4) / 4, round(h * 4) / 4)
 
 
+def _overlap(a, b, margin: float = 0.1) -> bool:
+    """Do two oriented rectangles (x, y, yaw, length, width) overlap? Separating-axis test."""
+    ax, ay, ayaw, al, aw = a
+    bx, by, byaw, bl, bw = b
+    dx, dy = bx - ax, by - ay
+    if dx * dx + dy * dy > ((al + bl) * 0.5 + aw + bw) ** 2:
+        return False
+    axes = []
+    for yaw in (ayaw, byaw):
+        c, s = math.cos(yaw), math.sin(yaw)
+        axes.append((c, s))
+        axes.append((-s, c))
+    for ux, uy in axes:
+        def half(yaw, l, w):
+            c, s = math.cos(yaw), math.sin(yaw)
+            return 0.5 * l * abs(c * ux + s * uy) + 0.5 * w * abs(-s * ux + c * uy)
+        if abs(dx * ux + dy * uy) > half(ayaw, al, aw) + half(byaw, bl, bw) + margin:
+            return False
+    return True
+
+
 class ActorMirror:
     def __init__(self, client: int, world, visuals: bool = False):
         self.client = client
@@ -38,6 +59,7 @@ class ActorMirror:
         self.pool: dict = {}        # key -> [free bodies]
         self.shapes: dict = {}      # key -> (collision, visual)
         self.created = 0
+        self.held = 0
         self.max_error_m = 0.0
 
     def _body(self, key):
@@ -60,11 +82,16 @@ class ActorMirror:
         return pb.createMultiBody(0, cs_vs[0], cs_vs[1], [0, 0, PARK_Z], useMaximalCoordinates=True,
                                  physicsClientId=c)
 
-    def update(self, snap) -> dict:
-        """Mirror a traffic snapshot (cosim.traffic.ActorsSnapshot). Returns counts."""
+    def update(self, snap, ego=None) -> dict:
+        """Mirror a traffic snapshot (cosim.traffic.ActorsSnapshot). Returns counts.
+
+        `ego` = (x, y, yaw, length, width): an actor whose new pose would overlap the ego's
+        footprint is held where it was (a kinematic body must never teleport into the
+        physics car: SUMO does not always see the ego, e.g. while it crosses a junction)."""
         c = self.client
         n = len(snap)
         seen = set()
+        held = 0
         if n:
             z = self.world.ground_z(snap.x, snap.y)
             z = np.where(np.isfinite(z), z, 0.0)
@@ -81,6 +108,11 @@ class ActorMirror:
                     cur = (self._body(key), key)
                     self.active[aid] = cur
                 h = key[3]
+                if ego is not None and _overlap(ego, (float(snap.x[k]), float(snap.y[k]), float(snap.yaw[k]),
+                                                      key[1], key[2])):
+                    held += 1
+                    seen.add(aid)
+                    continue
                 cp = math.cos(pitch[k])
                 q = pb.getQuaternionFromEuler([0.0, -float(pitch[k]), float(snap.yaw[k])])
                 pb.resetBasePositionAndOrientation(cur[0], [float(snap.x[k]), float(snap.y[k]),
@@ -89,7 +121,8 @@ class ActorMirror:
         gone = [a for a in self.active if a not in seen]
         for a in gone:
             self._park(self.active.pop(a))
-        return {"mirrored": len(self.active), "left": len(gone)}
+        self.held += held
+        return {"mirrored": len(self.active), "left": len(gone), "held": held}
 
     def _park(self, cur):
         body, key = cur

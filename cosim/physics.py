@@ -41,6 +41,7 @@ PREFAB_COLOURS = {"tree": (0.20, 0.45, 0.18, 1), "street_lamp": (0.35, 0.36, 0.3
 @dataclass
 class TileBodies:
     bodies: list = field(default_factory=list)
+    kinds: list = field(default_factory=list)
     hf_shape: int = -1
     load_ms: float = 0.0
 
@@ -136,11 +137,11 @@ class PhysicsWorld:
             sh, base = self._heightfield(g)
             ny, nx = g.z.shape
             pos = [g.xmin + (nx - 1) * g.spacing / 2, g.ymin + (ny - 1) * g.spacing / 2, base]
-            b = pb.createMultiBody(0, sh, -1, pos, useMaximalCoordinates=True, physicsClientId=c)
-            if self.visuals:
-                pb.changeVisualShape(b, -1, rgbaColor=COLOURS["terrain"], physicsClientId=c)
+            vis = self._terrain_visual(key, g, pos) if self.visuals else -1
+            b = pb.createMultiBody(0, sh, vis, pos, useMaximalCoordinates=True, physicsClientId=c)
             tb.hf_shape = sh
             tb.bodies.append(b)
+            tb.kinds.append("terrain")
         for kind, f in self.world.tile_files(key).items():
             collide = kind in COLLIDE
             if not collide and not self.visuals:
@@ -148,6 +149,7 @@ class PhysicsWorld:
             col, vis = self._shapes(f, kind, collide)
             b = pb.createMultiBody(0, col, vis, [0, 0, 0], useMaximalCoordinates=True, physicsClientId=c)
             tb.bodies.append(b)
+            tb.kinds.append(kind)
         tb.bodies.extend(self._scenery_bodies(key))
         if self.visuals:
             self._chunk_visual_ref((key[0], key[1]), +1)
@@ -185,6 +187,26 @@ class PhysicsWorld:
         return got
 
     HF_RANGE = 600.0
+
+    def _terrain_visual(self, key, g, pos):
+        """A visual mesh of the tile's grid on Bullet's triangulation (a refilled heightfield
+        keeps the visual of its creation data, so terrain is drawn with its own mesh).
+        Cached per tile, as PyBullet cannot free visual shapes."""
+        vis = self._shape_pool.get(("terrain-visual", key))
+        if vis is not None:
+            return vis
+        ny, nx = g.z.shape
+        xs = np.arange(nx) * g.spacing + g.xmin - pos[0]
+        ys = np.arange(ny) * g.spacing + g.ymin - pos[1]
+        X, Y = np.meshgrid(xs, ys)
+        V = np.column_stack([X.ravel(), Y.ravel(), (g.z - pos[2]).ravel()])
+        idx = np.arange(nx * ny).reshape(ny, nx)
+        a, b_, c_, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]   # (r,c) (r,c+1) (r+1,c) (r+1,c+1)
+        tri = np.concatenate([np.stack([a, b_, c_], -1).reshape(-1, 3), np.stack([b_, d, c_], -1).reshape(-1, 3)])
+        vis = pb.createVisualShape(pb.GEOM_MESH, vertices=V.tolist(), indices=tri.ravel().tolist(),
+                                   rgbaColor=COLOURS["terrain"], physicsClientId=self.client)
+        self._shape_pool[("terrain-visual", key)] = vis
+        return vis
 
     def _heightfield(self, g):
         """A pooled heightfield shape filled with tile grid `g`; returns (shape, body z).
@@ -280,6 +302,14 @@ class PhysicsWorld:
         _, _, rgb, depth, seg = pb.getCameraImage(width, height, view, proj, renderer=renderer,
                                                   shadow=0, physicsClientId=c)
         return np.reshape(np.asarray(rgb, dtype=np.uint8), (height, width, 4))[:, :, :3]
+
+    def body_kind(self, body: int) -> str:
+        """What a static body is: terrain, a mesh class of a tile, or scenery."""
+        for key, tb in self.tiles.items():
+            if body in tb.bodies:
+                i = tb.bodies.index(body)
+                return tb.kinds[i] if i < len(tb.kinds) else "scenery"
+        return "unknown"
 
     def body_count(self) -> int:
         return pb.getNumBodies(physicsClientId=self.client)

@@ -114,6 +114,7 @@ class Simulation:
         self.manual = None                 # (throttle, brake, steer) when driven by hand
         self.last_control = (0.0, 0.0, 0.0)
         self.last_snapshot = None
+        self.collision_log: list = []
         self._setup_done = False
 
     # ------------------------------------------------------------------------------------
@@ -139,13 +140,14 @@ class Simulation:
             self.progress("physics", 0.0, "loading the physics world")
             hz = cfg.physics_hz or RECOMMENDED_PHYSICS_HZ
             self.substeps = max(1, int(round(cfg.step_length_s * hz)))
-            self.physics = PhysicsWorld(self.world, gui=cfg.gui, physics_hz=hz).setup()
+            self.physics = PhysicsWorld(self.world, gui=cfg.gui, physics_hz=hz,
+                                        visuals=cfg.gui or cfg.render).setup()
             configure_physics(self.physics.client, hz)
             x, y, yaw, lane, pos = self._snap_start()
             self.physics.update(x, y, self.keep_radius, budget_ms=1e9)
             z = float(self.world.ground_z(x, y)[0])
             self.vehicle = EgoVehicle(self.physics.client, position=(x, y, z + 0.05), yaw=yaw)
-            self.mirror = ActorMirror(self.physics.client, self.world, visuals=cfg.gui)
+            self.mirror = ActorMirror(self.physics.client, self.world, visuals=cfg.gui or cfg.render)
             self._plan_route(lane, pos)
             self.traffic.add_ego(route_edges=self.route)
             self.traffic.set_ego_pose(x, y, yaw, 0.0)
@@ -281,7 +283,7 @@ class Simulation:
         self.t += cfg.step_length_s
         snap = self.traffic.actors_near(st.x, st.y, cfg.mirror_radius_m)
         self.last_snapshot = snap
-        self.mirror.update(snap)
+        self.mirror.update(snap, ego=(st.x, st.y, st.yaw, self.vehicle.spec.length, self.vehicle.spec.width))
         # driving
         k, s_here, lat_off = self.path.project(st.x, st.y, self._path_idx)
         self._path_idx = k
@@ -347,20 +349,28 @@ class Simulation:
             log.info("could not extend the route: %s", e)
 
     def _check_collisions(self):
+        """Count and log the ego's collisions: a chassis contact with a mirrored actor, or a
+        side-on contact (normal within 60 degrees of horizontal) with anything static."""
         import pybullet as pb
 
         cps = pb.getContactPoints(bodyA=self.vehicle.body_id, physicsClientId=self.physics.client)
-        hit = False
-        actor_bodies = {b for b, _ in self.mirror.active.values()}
+        body_actor = {b: a for a, (b, _) in self.mirror.active.items()}
+        hit = None
         for c in cps:
             other = c[2]
-            normal_z = abs(c[7][2])
-            if other in actor_bodies or normal_z < 0.5:
-                hit = True
+            if other in body_actor:
+                hit = ("actor", body_actor[other], c)
                 break
+            if abs(c[7][2]) < 0.5:
+                hit = ("static", self.physics.body_kind(other), c)
         if hit and not getattr(self, "_in_contact", False):
             self.summary.ego_collisions += 1
-        self._in_contact = hit
+            st = self.vehicle.state()
+            ev = {"t": round(self.t, 2), "with": hit[0], "what": hit[1], "x": round(st.x, 1), "y": round(st.y, 1),
+                  "speed_mps": round(st.speed, 2), "normal": [round(v, 2) for v in hit[2][7]]}
+            self.collision_log.append(ev)
+            log.warning("ego collision at t=%.1f s with %s %s (%.1f m/s)", self.t, hit[0], hit[1], st.speed)
+        self._in_contact = hit is not None
 
     def _telemetry(self, ego: EgoState, snap, frame_ms):
         v, p = self.mirror.counts()
@@ -384,6 +394,91 @@ class Simulation:
             "mode": "manual" if self.manual is not None else "auto",
             "sumo_vehicles": ts.vehicles, "sumo_persons": ts.persons,
         })
+
+    # --- live controls (GUI, keyboard, scripts) -------------------------------------------
+    def set_speed(self, mps: float):
+        """Change the set speed while driving."""
+        from .config import MAX_SPEED_MPS
+
+        if not 0 <= float(mps) <= MAX_SPEED_MPS:
+            raise InputError(f"speed {mps} m/s is out of range (0..{MAX_SPEED_MPS:.0f})")
+        self.cfg.speed_mps = float(mps)
+
+    def set_goal(self, lat: float | None, lon: float | None = None) -> dict:
+        """Route from where the car is now to a GPS coordinate (None: drive on at random).
+        Returns the route length and ETA."""
+        from netgen.frame import check_latlon
+
+        st = self.vehicle.state()
+        k, s_here, _ = self.path.project(st.x, st.y, self._path_idx)
+        lane = self.path.lane_of[k][0]
+        if lane.startswith(":"):
+            # in a junction: plan from the lane it leads into
+            lane = self.traffic.sumo.lane.getLinks(lane)[0][0]
+            pos = 0.0
+        else:
+            pos = float(self.traffic.sumo.lane.getShape(lane) and 0.0)
+            pos = max(0.0, self._lane_pos(lane, st.x, st.y))
+        old_goal = self.cfg.goal
+        self.cfg.goal = None if lat is None else check_latlon(lat, lon, "goal")
+        self.goal_xy = None
+        try:
+            self._plan_route(lane, pos)
+        except CosimError:
+            self.cfg.goal = old_goal
+            raise
+        return {k: self.snap_info.get(k) for k in ("route_length_m", "eta_s", "goal_snap_m")}
+
+    def _lane_pos(self, lane, x, y) -> float:
+        shape = np.array(self.traffic.sumo.lane.getShape(lane))
+        d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(shape, axis=0).T))])
+        best, bd = 0.0, float("inf")
+        for a in range(len(shape) - 1):
+            p, q = shape[a], shape[a + 1]
+            v = q - p
+            L2 = float(v @ v) or 1e-9
+            t = max(0.0, min(1.0, float((np.array([x, y]) - p) @ v) / L2))
+            dd = float(np.hypot(*(p + t * v - (x, y))))
+            if dd < bd:
+                bd, best = dd, d[a] + t * math.sqrt(L2)
+        return best
+
+    def set_manual(self, control: tuple | None):
+        """(throttle, brake, steer) to drive by hand, or None to give control back to the driver."""
+        if control is None:
+            if self.manual is not None and hasattr(self.driver, "speed"):
+                self.driver.speed.reset()
+            self.manual = None
+        else:
+            t, b, st = control
+            self.manual = (max(0.0, min(1.0, t)), max(0.0, min(1.0, b)), max(-1.0, min(1.0, st)))
+
+    def camera_image(self, width: int = 480, height: int = 270, view: str = "chase"):
+        """An RGB image (height, width, 3) from PyBullet's camera: 'chase' (behind and above
+        the car) or 'driver' (from the windscreen, looking ahead)."""
+        st = self.vehicle.state()
+        c, s = math.cos(st.yaw), math.sin(st.yaw)
+        if view == "driver":
+            eye = [st.x + 0.3 * c, st.y + 0.3 * s, st.z + 1.3]
+            target = [st.x + 30 * c, st.y + 30 * s, st.z + 1.0]
+        else:
+            eye = [st.x - 12 * c, st.y - 12 * s, st.z + 5.0]
+            target = [st.x + 8 * c, st.y + 8 * s, st.z + 1.0]
+        self.vehicle.sync_visuals()
+        return self.physics.camera_image(eye, target, width, height, fov=70.0, far=self.cfg.sensor_range_m * 2)
+
+    def actors(self) -> dict:
+        """The mirrored actors as plain lists: ids, kind, x, y, yaw, length, width, speed."""
+        snap = self.last_snapshot
+        if snap is None:
+            return {"ids": [], "kind": [], "x": [], "y": [], "yaw": [], "length": [], "width": [], "speed": []}
+        return {"ids": list(snap.ids), "kind": list(snap.kind), "x": snap.x.tolist(), "y": snap.y.tolist(),
+                "yaw": snap.yaw.tolist(), "length": snap.length.tolist(), "width": snap.width.tolist(),
+                "speed": snap.speed.tolist()}
+
+    def traffic_lights(self) -> dict:
+        """State string of every traffic light (SUMO's letters: r, y, G, g, ...)."""
+        return self.traffic.tls_states()
 
     # ------------------------------------------------------------------------------------
     def run(self, duration_s: float | None = None, on_step=None) -> Summary:

@@ -137,5 +137,28 @@ class World:
             self._scenery[ij] = s
         return s
 
+    def map_layers(self) -> dict:
+        """2D layers for a top-down map, in world metres: lanes for cars and footpaths as
+        (n, 2) polylines, building footprints as (n, 2) rings, chunk bounds."""
+        from netgen.roadnet import read_net
+
+        net = read_net(self.net_file)
+        roads, paths = [], []
+        for e in net.normal_edges():
+            for l in e.lanes:
+                if len(l.shape) >= 2:
+                    (roads if l.drivable else paths).append(l.shape)
+        buildings = []
+        for c in self.chunks.values():
+            f = c["files"].get("buildings_json")
+            if not f:
+                continue
+            for b in json.loads((self.path / f).read_text()).get("buildings", []):
+                ring = b.get("footprint")
+                if ring:
+                    buildings.append(np.asarray(ring, dtype=float))
+        return {"roads": roads, "paths": paths, "buildings": buildings,
+                "chunks": [c["bounds_m"] for c in self.chunks.values()]}
+
     def loaded_extent(self):
         return tuple(self.meta["extent_m"])
