@@ -115,6 +115,7 @@ class Simulation:
         self.last_control = (0.0, 0.0, 0.0)
         self.last_snapshot = None
         self.collision_log: list = []
+        self.keyboard = None               # a cosim.keyboard.KeyboardControl when keys drive
         self._setup_done = False
 
     # ------------------------------------------------------------------------------------
@@ -157,6 +158,10 @@ class Simulation:
 
                 self.driver = Autopilot(self)
             self._last_xy = (x, y)
+            if cfg.gui:
+                from .keyboard import KeyboardControl
+
+                self.keyboard = KeyboardControl()
         except BaseException:
             self.teardown()
             raise
@@ -287,6 +292,12 @@ class Simulation:
         # driving
         k, s_here, lat_off = self.path.project(st.x, st.y, self._path_idx)
         self._path_idx = k
+        if self.keyboard is not None:
+            if cfg.gui:
+                from .keyboard import pybullet_keys
+
+                pybullet_keys(self.physics.client, self.keyboard)
+            self.manual = self.keyboard.update(cfg.step_length_s)
         if self.manual is not None:
             throttle, brake, steer = self.manual
         else:
@@ -309,6 +320,11 @@ class Simulation:
         if self._last_xy is not None:
             self.summary.distance_m += math.hypot(st.x - self._last_xy[0], st.y - self._last_xy[1])
         self._last_xy = (st.x, st.y)
+        if cfg.gui:
+            import pybullet as pb
+
+            pb.resetDebugVisualizerCamera(12.0, math.degrees(st.yaw) - 90.0, -18.0, [st.x, st.y, st.z + 1.0],
+                                          physicsClientId=self.physics.client)
         frame_ms = (time.perf_counter() - t0) * 1000.0
         self._frame_ms.append(frame_ms)
         ego = self.ego_state()
