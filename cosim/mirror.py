@@ -142,6 +142,12 @@ class ActorMirror:
         self.max_error_m = max(self.max_error_m, worst)
         return worst
 
+    def rekey(self, mapping: dict) -> None:
+        """Actors carried across a SUMO network swap get new ids: keep their bodies."""
+        for old, new in mapping.items():
+            if old in self.active:
+                self.active[new] = self.active.pop(old)
+
     def body_of(self, actor_id):
         cur = self.active.get(actor_id)
         return cur[0] if cur else None

@@ -125,8 +125,17 @@ class PhysicsWorld:
         return {"loaded": loaded, "unloaded": unloaded, "pending": sum(1 for k in want if k not in self.tiles)}
 
     def covered(self, x: float, y: float, r: float) -> bool:
-        """True when every built tile touching the disc (x, y, r) is loaded."""
-        return all(k in self.tiles for k in self.world.tiles_within(x, y, r) if self.world.is_built(k))
+        """True when every tile touching the disc (x, y, r) is built and loaded."""
+        return all(k in self.tiles for k in self.world.tiles_within(x, y, r))
+
+    def refresh(self, chunks) -> int:
+        """Unload the loaded tiles of chunks that a new window replaced (they reload from the
+        new build on the next update). Returns how many were unloaded."""
+        chunks = set(chunks)
+        keys = [k for k in self.tiles if (k[0], k[1]) in chunks]
+        for k in keys:
+            self.unload_tile(k)
+        return len(keys)
 
     def load_tile(self, key):
         t0 = time.perf_counter()
@@ -283,7 +292,7 @@ class PhysicsWorld:
         if n > 0 and body is None:
             f = self.world.chunks[ij]["files"].get("scenery_obj")
             if f:
-                _, vis = self._shapes(self.world.path / f, "areas", False)
+                _, vis = self._shapes(self.world.file(ij, f), "areas", False)
                 body = pb.createMultiBody(0, -1, vis, [0, 0, 0], physicsClientId=c)
         if n <= 0 and body is not None:
             pb.removeBody(body, physicsClientId=c)

@@ -72,6 +72,9 @@ class Summary:
     sensor_range_violations: int = 0
     max_mirror_error_m: float = 0.0
     arrived: bool | None = None
+    windows_built: int = 0
+    network_swaps: int = 0
+    swap_ms_max: float = 0.0
     frame_ms_median: float = 0.0
     frame_ms_p999: float = 0.0
     frame_ms_max: float = 0.0
@@ -83,7 +86,8 @@ class Summary:
                 f"{self.distance_m:.0f} m driven; actors up to {self.max_vehicles} vehicles + {self.max_persons} persons "
                 f"({self.max_mirrored} mirrored); tiles loaded {self.tiles_loaded} / unloaded {self.tiles_unloaded}; "
                 f"collisions: ego {self.ego_collisions}, SUMO {self.sumo_collisions}; teleports {self.sumo_teleports}; "
-                f"sensor-range violations {self.sensor_range_violations}.{arr}")
+                f"sensor-range violations {self.sensor_range_violations}; "
+                f"windows built {self.windows_built}, SUMO network swaps {self.network_swaps}.{arr}")
 
 
 class Simulation:
@@ -116,6 +120,7 @@ class Simulation:
         self.last_snapshot = None
         self.collision_log: list = []
         self.keyboard = None               # a cosim.keyboard.KeyboardControl when keys drive
+        self.streamer = None
         self._setup_done = False
 
     # ------------------------------------------------------------------------------------
@@ -153,6 +158,9 @@ class Simulation:
             self.traffic.add_ego(route_edges=self.route)
             self.traffic.set_ego_pose(x, y, yaw, 0.0)
             self.telemetry = Telemetry(cfg.telemetry).setup()
+            from .streaming import WorldStreamer
+
+            self.streamer = WorldStreamer(self).setup()
             if self.driver is None:
                 from .autopilot import Autopilot
 
@@ -314,6 +322,7 @@ class Simulation:
             self.summary.arrived = True
         # streaming
         r = self.physics.update(st.x, st.y, self.keep_radius)
+        self.streamer.step(st.x, st.y)
         if not self._covered(st.x, st.y):
             self.summary.sensor_range_violations += 1
         self._chunks_seen.add(self.world.frame.chunk_of(st.x, st.y))
@@ -337,11 +346,8 @@ class Simulation:
         return ego
 
     def _covered(self, x, y) -> bool:
-        """B8: every point within the sensor range is inside the loaded world."""
-        r = self.cfg.sensor_range_m
-        xmin, ymin, xmax, ymax = self.world.loaded_extent()
-        inside_built = xmin <= x - r and x + r <= xmax and ymin <= y - r and y + r <= ymax
-        return inside_built and self.physics.covered(x, y, r)
+        """B8: every tile within the sensor range is built and loaded."""
+        return self.physics.covered(x, y, self.cfg.sensor_range_m)
 
     def _extend_route(self):
         from .driving import LanePath
@@ -410,6 +416,23 @@ class Simulation:
             "mode": "manual" if self.manual is not None else "auto",
             "sumo_vehicles": ts.vehicles, "sumo_persons": ts.persons,
         })
+
+    def replan(self):
+        """Plan the route again from where the car is (after a SUMO network swap): on the
+        same lane if the new network has it, else the nearest lane in the car's direction."""
+        st = self.vehicle.state()
+        k, _, _ = self.path.project(st.x, st.y, self._path_idx)
+        lane = self.path.lane_of[k][0]
+        s = self.traffic.sumo
+        try:
+            if lane.startswith(":"):
+                raise ValueError("in a junction")
+            s.lane.getLength(lane)
+            pos = self._lane_pos(lane, st.x, st.y)
+        except Exception:
+            lane, pos, *_ = self._snap(st.x, st.y, "ego")
+        self.goal_xy = None
+        self._plan_route(lane, pos)
 
     # --- live controls (GUI, keyboard, scripts) -------------------------------------------
     def set_speed(self, mps: float):
@@ -525,10 +548,15 @@ class Simulation:
             s.frame_ms_max = round(float(f.max()), 2)
         if self.mirror is not None:
             s.max_mirror_error_m = round(self.mirror.max_error_m, 4)
+        if self.streamer is not None:
+            s.windows_built = len(self.streamer.build_s)
+            s.network_swaps = self.streamer.swaps
+            s.swap_ms_max = max(self.streamer.swap_ms, default=0.0)
+            s.notes = list(self.streamer.errors)
         return s
 
     def teardown(self):
-        for comp in ("telemetry", "physics", "traffic"):
+        for comp in ("streamer", "telemetry", "physics", "traffic"):
             c = getattr(self, comp, None)
             if c is not None:
                 try:

@@ -32,18 +32,53 @@ class World:
         self.chunk_size = float(m["chunk_size_m"])
         self.tile_size = float(m.get("tile_size_m", self.chunk_size))
         self.spacing = float(m["terrain"]["spacing_m"])
-        self.chunks = {(c["i"], c["j"]): c for c in m["chunks"]}
+        self.chunks = {(c["i"], c["j"]): dict(c, _base=self.path, _window=tuple(m.get("window", (0, 0))))
+                       for c in m["chunks"]}
         self.net_file = self.path / m["net_file"]
+        self.windows = [self.path]
         self._grids: dict = {}
         self._scenery: dict = {}
         self.nt = max(1, int(round(self.chunk_size / self.tile_size)))
+        self.version = 0                    # bumped when a window adds or replaces chunks
+
+    def add_window(self, path) -> list:
+        """Take in another build of the same frame (a window of chunks around another chunk).
+
+        A chunk is taken from the window in which it lies most interior (its roads were cut
+        at that window's edge the least). Returns the chunks that were added or replaced."""
+        other = World(path)
+        if other.meta["projection"]["proj"].split() != self.meta["projection"]["proj"].split():
+            raise DataError(f"window {path} uses another projection than {self.path}")
+        changed = []
+        wi = tuple(other.meta.get("window", (0, 0)))
+        for ij, c in other.chunks.items():
+            cur = self.chunks.get(ij)
+            d_new = max(abs(ij[0] - wi[0]), abs(ij[1] - wi[1]))
+            d_cur = max(abs(ij[0] - cur["_window"][0]), abs(ij[1] - cur["_window"][1])) if cur else 1 << 30
+            if d_new < d_cur:
+                self.chunks[ij] = c
+                self._grids.pop(ij, None)
+                self._scenery.pop(ij, None)
+                changed.append(ij)
+        self.net_file = other.net_file
+        self.windows.append(other.path)
+        self.meta["extent_m"] = list(self._union_extent())
+        self.version += 1
+        return changed
+
+    def _union_extent(self):
+        b = np.array([c["bounds_m"] for c in self.chunks.values()])
+        return float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max())
+
+    def file(self, ij, rel) -> Path:
+        return self.chunks[ij]["_base"] / rel
 
     # --- terrain ------------------------------------------------------------------------
     def grid(self, ij) -> TerrainGrid | None:
         g = self._grids.get(ij)
         if g is None and ij in self.chunks:
             c = self.chunks[ij]
-            z = np.load(self.path / c["files"]["terrain"]).astype(np.float64)
+            z = np.load(c["_base"] / c["files"]["terrain"]).astype(np.float64)
             g = TerrainGrid(c["bounds_m"][0], c["bounds_m"][1], self.spacing, z)
             self._grids[ij] = g
         return g
@@ -117,7 +152,7 @@ class World:
         c = self.chunks.get((key[0], key[1]))
         if not c:
             return {}
-        return {k: self.path / v for k, v in c.get("tiles", {}).get(f"{key[2]}_{key[3]}", {}).items()}
+        return {k: c["_base"] / v for k, v in c.get("tiles", {}).get(f"{key[2]}_{key[3]}", {}).items()}
 
     def tile_terrain(self, key) -> TerrainGrid | None:
         g = self.grid((key[0], key[1]))
@@ -133,7 +168,7 @@ class World:
         if s is None:
             c = self.chunks.get(ij)
             f = c["files"].get("scenery_json") if c else None
-            s = json.loads((self.path / f).read_text())["instances"] if f else []
+            s = json.loads((c["_base"] / f).read_text())["instances"] if f else []
             self._scenery[ij] = s
         return s
 
@@ -153,12 +188,12 @@ class World:
             f = c["files"].get("buildings_json")
             if not f:
                 continue
-            for b in json.loads((self.path / f).read_text()).get("buildings", []):
+            for b in json.loads((c["_base"] / f).read_text()).get("buildings", []):
                 ring = b.get("footprint")
                 if ring:
                     buildings.append(np.asarray(ring, dtype=float))
         return {"roads": roads, "paths": paths, "buildings": buildings,
-                "chunks": [c["bounds_m"] for c in self.chunks.values()]}
+                        "chunks": [c["bounds_m"] for c in self.chunks.values()]}
 
     def loaded_extent(self):
         return tuple(self.meta["extent_m"])

@@ -1,0 +1,147 @@
+"""Co-simulation benchmark and soak run.
+
+    python bench/bench_cosim.py                      # RTF vs SUMO alone, frame times (2 x 120 s)
+    python bench/bench_cosim.py --soak-minutes 30    # the 30-minute dense drive across chunks
+
+Real-time factors are taken side by side in one run, on the same network, demand and seed:
+
+* SUMO alone: libsumo stepping the scenario, nothing else;
+* the full co-simulation: SUMO + PyBullet (ego car, mirrored actors, streamed tiles), headless.
+
+The goals: co-sim >= 0.7 x SUMO-alone speed with ~400 actors, >= 20x real time; frame time
+p99.9 <= 2 x median and no frame over 50 ms caused by tile loading. The soak reports memory
+(RSS) every simulated minute, collisions, teleports, windows built and network swaps.
+Nothing is asserted: figures are printed.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import numpy as np  # noqa: E402
+import psutil  # noqa: E402
+
+from cosim.config import SimConfig  # noqa: E402
+from cosim.demand import generate_demand  # noqa: E402
+from cosim.sim import Simulation  # noqa: E402
+from netgen.build import build_world  # noqa: E402
+from netgen.config import WorldConfig  # noqa: E402
+
+
+def sumo_alone(net, routes, seconds, seed, warm):
+    import libsumo
+
+    from netgen.sumo_net import sumo_binary
+
+    libsumo.start([sumo_binary("sumo"), "-n", str(net), "-r", ",".join(map(str, routes)), "--step-length", "0.1",
+                   "--seed", str(seed), "--no-step-log", "--no-warnings", "--collision.action", "warn",
+                   "--time-to-teleport", "120", "--ignore-route-errors"])
+    try:
+        for _ in range(int(warm / 0.1)):
+            libsumo.simulationStep()
+        n = int(seconds / 0.1)
+        actors = []
+        t0 = time.perf_counter()
+        for i in range(n):
+            libsumo.simulationStep()
+            if i % 50 == 0:
+                actors.append(libsumo.vehicle.getIDCount() + libsumo.person.getIDCount())
+        wall = time.perf_counter() - t0
+    finally:
+        libsumo.close()
+    return seconds / wall, statistics.mean(actors)
+
+
+def cosim(world, traffic, seconds, seed, warm, speed):
+    cfg = SimConfig(world_dir=str(world), traffic=traffic, seed=seed, speed_mps=speed, duration_s=warm + seconds)
+    sim = Simulation(cfg).setup()
+    try:
+        for _ in range(int(warm / 0.1)):
+            sim.step()
+        frames = []
+        loads = []
+        t0 = time.perf_counter()
+        for _ in range(int(seconds / 0.1)):
+            n0 = sim.physics.loads + sim.physics.unloads
+            f0 = time.perf_counter()
+            sim.step()
+            frames.append((time.perf_counter() - f0) * 1000.0)
+            loads.append(sim.physics.loads + sim.physics.unloads > n0)
+        wall = time.perf_counter() - t0
+        s = sim.finish()
+    finally:
+        sim.teardown()
+    f = np.array(frames)
+    ld = np.array(loads)
+    return seconds / wall, s, f, ld
+
+
+def soak(world, minutes, seed, speed):
+    cfg = SimConfig(world_dir=str(world), traffic="dense", seed=seed, speed_mps=speed, duration_s=minutes * 60.0)
+    sim = Simulation(cfg).setup()
+    proc = psutil.Process()
+    try:
+        t0 = time.perf_counter()
+        for minute in range(int(minutes)):
+            for _ in range(600):
+                sim.step()
+            rss = proc.memory_info().rss / 1e6
+            st = sim.vehicle.state()
+            print(f"  minute {minute + 1:3d}: rss {rss:7.1f} MB  chunk {sim.world.frame.chunk_of(st.x, st.y)}  "
+                  f"{sim.summary.distance_m / 1000:5.2f} km  tiles loaded {sim.physics.loads} unloaded {sim.physics.unloads}  "
+                  f"windows {sim.streamer.swaps}  heightfield shapes {sim.physics.hf_shapes_created}  "
+                  f"mesh shapes {len(sim.physics._shape_pool)}  mirror bodies {sim.mirror.created}  "
+                  f"ego collisions {sim.summary.ego_collisions}  wall {time.perf_counter() - t0:6.0f} s", flush=True)
+        s = sim.finish()
+        print("  summary:", s.line())
+        print("  swaps (ms):", sim.streamer.swap_ms, " window builds (s):", sim.streamer.build_s,
+              " errors:", sim.streamer.errors)
+        print("  collisions:", sim.collision_log[:10])
+    finally:
+        sim.teardown()
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--preset", default="helsinki")
+    ap.add_argument("--traffic", default="dense")
+    ap.add_argument("--seconds", type=float, default=120.0)
+    ap.add_argument("--warm", type=float, default=60.0)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--speed", type=float, default=12.0)
+    ap.add_argument("--soak-minutes", type=float, default=0.0)
+    ap.add_argument("--out", default=str(REPO / "bench" / "results" / "worlds"))
+    a = ap.parse_args(argv)
+    out = Path(a.out) / a.preset
+    w = build_world(WorldConfig(preset=a.preset, chunks=1, out=str(out)))
+    world = Path(w["out"])
+    if a.soak_minutes:
+        print(f"== soak: {a.soak_minutes:.0f} min, {a.preset}, dense traffic, {a.speed} m/s")
+        soak(world, a.soak_minutes, a.seed, a.speed)
+        return
+    d = generate_demand(world / w["net_file"], world / "traffic", density=a.traffic, seed=a.seed,
+                        duration=a.warm + a.seconds + 60.0)
+    print(f"== {a.preset}, traffic {a.traffic}, seed {a.seed}: {a.warm:.0f} s warm-up, {a.seconds:.0f} s measured")
+    rtf_sumo, actors = sumo_alone(world / w["net_file"], d.route_files, a.seconds, a.seed, a.warm)
+    rtf_co, s, f, ld = cosim(world, a.traffic, a.seconds, a.seed, a.warm, a.speed)
+    print(f"   SUMO alone      : x{rtf_sumo:6.1f} real time, {actors:.0f} actors in the simulation")
+    print(f"   co-simulation   : x{rtf_co:6.1f} real time, {s.max_vehicles} vehicles + {s.max_persons} persons, "
+          f"{s.max_mirrored} mirrored at most")
+    print(f"   ratio co-sim / SUMO alone: {rtf_co / rtf_sumo:.2f}  (goal >= 0.7; and >= 20x real time)")
+    print(f"   frame ms: median {np.median(f):.2f}, p99 {np.percentile(f, 99):.2f}, p99.9 {np.percentile(f, 99.9):.2f} "
+          f"({np.percentile(f, 99.9) / np.median(f):.2f} x median; goal <= 2), max {f.max():.2f}")
+    if ld.any():
+        print(f"   frames with tile loads: {ld.sum()}, their max {f[ld].max():.2f} ms (goal <= 50); "
+              f"without loads p99.9 {np.percentile(f[~ld], 99.9):.2f} ms")
+    print(f"   {s.line()}")
+
+
+if __name__ == "__main__":
+    main()

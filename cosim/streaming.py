@@ -1,0 +1,134 @@
+"""Keeping the world ahead of the car: windows built in the background, SUMO swapped over.
+
+A *window* is a complete build (``netgen.build``) of the chunks within ``rings`` of one chunk,
+in the world's one frame. The run starts in the window around the reference point. When the
+car leaves that window's centre chunk, the window centred on the car's chunk is built in a
+worker process (netconvert, layers and traffic demand: Python threads would not help, and a
+spawned process shares no libsumo or PyBullet state), into ``<world>/windows/<i>_<j>``.
+When it is ready:
+
+* the world view takes in its chunks (``World.add_window``), and tiles of replaced chunks
+  reload from the new build, so roads cut at the old window's edge become whole;
+* SUMO restarts on the new network with the new demand (``SumoTraffic.swap_network``); the
+  actors near the ego keep their positions and speeds and their mirrored bodies (re-keyed to
+  the new SUMO ids), so none visibly vanishes;
+* the ego's route is planned again on the new network.
+
+With one ring a window reaches at least one chunk beyond the car's chunk, so the car can
+drive a whole chunk while the next window is built.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import time
+from pathlib import Path
+
+log = logging.getLogger("cosim.streaming")
+
+
+def _build_window(cfg_dict: dict, window: tuple, out: str, traffic, seed: int, duration: float, conn):
+    """Worker process: build a window and its demand; send (out, route files) or an error."""
+    try:
+        from cosim.demand import generate_demand
+        from netgen.build import build_world
+        from netgen.config import WorldConfig
+
+        cfg = WorldConfig.from_dict(cfg_dict)
+        cfg.window = tuple(window)
+        cfg.out = out
+        w = build_world(cfg)
+        net = Path(w["out"]) / w["net_file"]
+        d = generate_demand(net, Path(w["out"]) / "traffic", density=traffic, seed=seed, duration=duration)
+        conn.send(("ok", w["out"], [str(p) for p in d.route_files]))
+    except BaseException as e:  # report anything, the loop decides
+        conn.send(("error", f"{type(e).__name__}: {e}", []))
+    finally:
+        conn.close()
+
+
+class WorldStreamer:
+    """Component (setup / step / teardown) run by the simulation loop."""
+
+    def __init__(self, sim):
+        self.sim = sim
+        meta = sim.world.meta
+        self.base_cfg = meta.get("config")
+        self.center = tuple(meta.get("window", (0, 0)))
+        self.built = {self.center}
+        self.proc = None
+        self.conn = None
+        self.job_window = None
+        self.job_started = 0.0
+        self.swaps = 0
+        self.swap_ms: list = []
+        self.build_s: list = []
+        self.errors: list = []
+        self.enabled = self.base_cfg is not None
+        if not self.enabled:
+            log.info("world.json has no build config: the world will not grow beyond %s", sim.world.path)
+
+    def setup(self):
+        return self
+
+    @property
+    def building(self):
+        return self.job_window
+
+    def step(self, x: float, y: float) -> None:
+        if not self.enabled:
+            return
+        ij = self.sim.world.frame.chunk_of(x, y)
+        if self.proc is None and ij != self.center and ij not in self.built:
+            self._start(ij)
+        if self.proc is not None and self.conn.poll():
+            status, out, routes = self.conn.recv()
+            self.proc.join(timeout=5)
+            self.proc = None
+            self.build_s.append(round(time.perf_counter() - self.job_started, 2))
+            window, self.job_window = self.job_window, None
+            if status != "ok":
+                self.errors.append(out)
+                self.built.add(window)          # do not retry in a loop; reported in the summary
+                log.warning("could not build the window around chunk %s: %s", window, out)
+                return
+            self._swap(window, out, routes)
+
+    def _start(self, window):
+        cfg = self.sim.cfg
+        out = str(self.sim.world.path / "windows" / f"{window[0]}_{window[1]}")
+        ctx = mp.get_context("spawn")
+        parent, child = ctx.Pipe(duplex=False)
+        self.proc = ctx.Process(target=_build_window, daemon=True,
+                                args=(self.base_cfg, window, out, cfg.traffic, cfg.seed,
+                                      max(cfg.duration_s, 60.0) + 60.0, child))
+        self.proc.start()
+        child.close()
+        self.conn = parent
+        self.job_window = window
+        self.job_started = time.perf_counter()
+        log.info("building the window around chunk %s in the background", window)
+
+    def _swap(self, window, out, routes):
+        sim = self.sim
+        t0 = time.perf_counter()
+        changed = sim.world.add_window(out)
+        sim.physics.refresh(changed)
+        mapping = sim.traffic.swap_network(sim.world.net_file, routes, keep_radius=sim.cfg.mirror_radius_m)
+        sim.mirror.rekey(mapping)
+        sim.replan()
+        self.center = window
+        self.built.add(window)
+        self.swaps += 1
+        self.swap_ms.append(round((time.perf_counter() - t0) * 1000.0, 1))
+        log.info("swapped to the window around chunk %s (%d chunks new, %d actors kept, %.0f ms)",
+                 window, len(changed), len(mapping), self.swap_ms[-1])
+
+    def teardown(self):
+        if self.proc is not None:
+            self.proc.terminate()           # its output is written atomically: nothing half-built stays valid
+            self.proc.join(timeout=10)
+            self.proc = None
+        if self.conn is not None:
+            self.conn.close()
+            self.conn = None
