@@ -262,6 +262,10 @@ def make_parser() -> argparse.ArgumentParser:
     b.add_argument("-v", "--verbose", action="store_true", help="progress lines even when stderr is not a terminal")
     b.set_defaults(func=cmd_build)
 
+    from netgen.export_sdf import add_export_parser
+
+    add_export_parser(sub)
+
     r = sub.add_parser("run", help="run the co-simulation (headless by default)",
                        description="Build (or reuse) a world and drive the physics car through SUMO traffic. "
                                    "With no place given, runs the default preset.")
