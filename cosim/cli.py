@@ -245,6 +245,12 @@ def cmd_run(a):
     return 0
 
 
+def cmd_gui(a):
+    from ui.app import main as gui_main
+
+    return gui_main([])
+
+
 def make_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="cosim", description="Turn any place on Earth into a drivable, "
                                 "traffic-filled simulation (OpenStreetMap + elevation -> SUMO + PyBullet).")
@@ -265,6 +271,10 @@ def make_parser() -> argparse.ArgumentParser:
     from netgen.export_sdf import add_export_parser
 
     add_export_parser(sub)
+
+    gp = sub.add_parser("gui", help="the desktop launcher (PyQt5) with a live view of the simulation",
+                        description="Open the PyQt5 launcher: pick a place, check the inputs, build and drive.")
+    gp.set_defaults(func=cmd_gui)
 
     r = sub.add_parser("run", help="run the co-simulation (headless by default)",
                        description="Build (or reuse) a world and drive the physics car through SUMO traffic. "
