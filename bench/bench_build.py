@@ -10,7 +10,9 @@ and a world of (2 * rings + 1)^2 chunks of 1 km, it times, side by side in one r
 * a cached rebuild (same inputs, world already on disk).
 
 Figures are medians over --repeat runs; ratios are full build / netconvert alone (goal <= 1.3)
-and the cached rebuild time (goal <= 2 s). Nothing is asserted: this machine is noisy.
+and the cached rebuild time (goal <= 2 s). Nothing is asserted: this machine is noisy. The
+load average is printed with each place: the build keeps both cores busy after netconvert,
+so other work on the machine slows it more than it slows netconvert alone.
 """
 from __future__ import annotations
 
@@ -93,8 +95,9 @@ def main(argv=None):
         m_nc, m_full, m_cached = statistics.median(nc), statistics.median(full), statistics.median(cached)
         st = {k: round(statistics.median(s.get(k, 0.0) for s in stages), 2) for k in stages[-1] if k != "total"}
         rows.append((name, m_nc, m_full, m_cached, size, w["counts"]))
+        load = " ".join(f"{x:.1f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "?"
         print(f"\n== {name}: {len(w['chunks'])} chunks, {w['counts']['road_edges']} road edges, "
-              f"{w['counts']['buildings']} buildings, world {size / 1e6:.1f} MB")
+              f"{w['counts']['buildings']} buildings, world {size / 1e6:.1f} MB (load average {load})")
         print(f"   netconvert alone {m_nc:6.2f} s | full build {m_full:6.2f} s | ratio {m_full / m_nc:4.2f} "
               f"(goal <= 1.3) | cached rebuild {m_cached:5.2f} s (goal <= 2)")
         print("   stages (s): " + ", ".join(f"{k} {v}" for k, v in st.items()))

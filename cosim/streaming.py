@@ -99,7 +99,7 @@ class WorldStreamer:
         out = str(self.sim.world.path / "windows" / f"{window[0]}_{window[1]}")
         ctx = mp.get_context("spawn")
         parent, child = ctx.Pipe(duplex=False)
-        self.proc = ctx.Process(target=_build_window, daemon=True,
+        self.proc = ctx.Process(target=_build_window, daemon=False,   # the build forks its own writers
                                 args=(self.base_cfg, window, out, cfg.traffic, cfg.seed,
                                       max(cfg.duration_s, 60.0) + 60.0, child))
         self.proc.start()

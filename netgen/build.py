@@ -1,14 +1,37 @@
 """Build a world: OSM + elevation -> SUMO network + chunked 3D layers + world.json.
 
-Stages (timed; the report and ``world.json`` carry the figures):
+netconvert is the long pole: the build is arranged so that little is left to do once it
+has finished, and what is left runs on both cores. Stages (timed; the report and
+``world.json`` carry the figures, ``timings_s``):
 
-1. resolve the place (preset, local OSM file, Overpass bbox) and the elevation source;
-2. start netconvert in the background (the longest step), and meanwhile, on the other core,
-   sample the terrain grid and read buildings and scenery from the OSM file;
-3. read the network, mesh the roads, level the terrain under them;
-4. extrude buildings onto the final terrain, place scenery;
-5. write chunk files, then ``world.json`` last: the world is built in a temporary folder and
-   renamed into place, so a killed build never leaves a folder that looks complete.
+1. resolve the place (preset, local OSM file, Overpass bbox); convert the OSM data to the
+   XML netconvert reads (``osm``, cached);
+2. start netconvert in the background (when there is a world on disk that may be up to
+   date, only after checking its build key, which needs the elevation source), and
+   meanwhile, on the other core, open the elevation source (``elevation_open``) and do
+   everything that does not need the network: sample the terrain grid
+   (``terrain_sample``), read buildings and scenery (``features``; from the PBF source
+   when there is one), extrude every building on a base of 0 and find where its base
+   will be sampled (``buildings_plan``), and generate, test against the buildings and
+   drape the scenery (``scenery_plan``; left to step 4 when netconvert is done first);
+3. read the network while netconvert writes it (``net_read``: netconvert spends about a
+   quarter of its time writing, and what the builder needs comes first in the file);
+4. then three streams (:class:`_Streams`): this process meshes the roads and levels the
+   terrain under them; a forked process builds the carriageway and places the scenery on
+   it (moving poles off it, cutting grass along it) and on the final terrain, and writes
+   it; a second forked process, started once the roads are meshed, writes road tiles.
+   Road tiles and buildings (lifted onto the levelled terrain) are written piece by piece
+   by whichever process is free;
+5. ``world.json`` last: the world is built in a temporary folder and renamed into place, so
+   a killed build never leaves a folder that looks complete (forked processes die with
+   the build).
+
+Files inside the temporary folder are not fsynced one by one (see :mod:`netgen.meshio`);
+``world.json`` is. Each chunk has ``terrain.npy``, one OBJ per tile and class
+(``tiles/<a>_<b>/<class>.obj``: asphalt, sidewalk, marking, rail, building; a ``g`` group
+per piece), ``roads.json``, ``buildings.glb`` and ``buildings.json``, ``scenery.json``,
+``areas.glb`` and ``areas.obj`` (the buildings are in the tiles and the GLB; there is no
+merged buildings.obj).
 
 A rebuild with the same inputs finds ``world.json`` with the same build key and returns at
 once; netconvert's output is also cached by its inputs (OSM content, options, projection).
@@ -30,7 +53,7 @@ from ._atomic import atomic_path, check_writable, remove_stale_temps, write_text
 from .config import QUALITY, WorldConfig
 from .errors import BuildError, DataError, InputError
 from .frame import WorldFrame
-from .meshio import split_pieces, tile_index, write_obj
+from .meshio import ObjBatch, tile_index, write_file
 
 FORMAT_VERSION = 1
 TILE_M = 250.0
@@ -170,13 +193,15 @@ def load_world_json(out: Path) -> dict | None:
 
 def build_world(cfg: WorldConfig, progress=_noop, force: bool = False) -> dict:
     """Build (or reuse) the world described by `cfg`; returns the world.json dict."""
+    from . import sumo_net
+
     cfg.validate()
     T = Timer()
     t_start = time.perf_counter()
     cache = cfg.cache_path
     name, centre, source, preset = resolve_place(cfg)
     frame = WorldFrame(centre[0], centre[1], cfg.chunk_size_m)
-    chunks = frame.ring(cfg.chunks)
+    chunks = frame.ring(cfg.chunks, *cfg.window)
     extent = frame.extent(chunks)
     bbox = frame.bbox_lonlat(extent, margin_m=50.0)
     out = Path(cfg.out) if cfg.out else Path("worlds") / name
@@ -187,38 +212,60 @@ def build_world(cfg: WorldConfig, progress=_noop, force: bool = False) -> dict:
     progress("osm", 0.0, "reading OSM data")
     with T.stage("osm"):
         osm_xml, osm_info = _osm_for(cfg, source, bbox, cache)
-    progress("elevation", 0.0, "opening elevation")
-    with T.stage("elevation_open"):
-        elevation = open_elevation_source(cfg, preset, bbox)
-    elev_info = elevation.info()
-    if cfg.dem:
-        elev_info = {**elev_info, "hashes": _dem_files_key(cfg)}
-    key = _build_key(cfg, osm_info["sha256"], elev_info, centre)
-    if not force:
-        old = load_world_json(out)
-        if old is not None and old.get("build_key") == key:
-            old["reused"] = True
-            old["timings_s"] = {"total": round(time.perf_counter() - t_start, 3), "reused": True}
-            progress("done", 1.0, "world is up to date")
-            return old
-
-    remove_stale_temps(out.parent)
     tmp = out.parent / f"{out.name}.tmp-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
+    # netconvert, cached by its inputs (not the elevation). With no world on disk to reuse,
+    # it starts now, before the elevation source is opened (a cold start imports a lot)
+    nc_key = cfg.fingerprint({"osm": osm_info["sha256"], "proj": frame.proj_string,
+                              "bbox": [round(b, 6) for b in bbox], "opts": sumo_net.NETCONVERT_VERSION_TAG,
+                              "only": "net"})
+    nc = _Netconvert(sumo_net, osm_xml, tmp / NET_FILE, frame.proj_string, bbox,
+                     cache / "net" / f"{nc_key}.net.xml", cache / "net" / f"{nc_key}.warnings.json")
     try:
+        if force or load_world_json(out) is None:
+            _start(nc, tmp, out, progress)
+        progress("elevation", 0.0, "opening elevation")
+        with T.stage("elevation_open"):
+            elevation = open_elevation_source(cfg, preset, bbox)
+        elev_info = elevation.info()
+        if cfg.dem:
+            elev_info = {**elev_info, "hashes": _dem_files_key(cfg)}
+        key = _build_key(cfg, osm_info["sha256"], elev_info, centre)
+        if not force and not nc.started:
+            old = load_world_json(out)
+            if old is not None and old.get("build_key") == key:
+                old["reused"] = True
+                old["out"] = str(out)
+                old["timings_s"] = {"total": round(time.perf_counter() - t_start, 3), "reused": True}
+                progress("done", 1.0, "world is up to date")
+                return old
+        if not nc.started:
+            _start(nc, tmp, out, progress)
         world = _build_into(tmp, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, source,
-                            elevation, elev_info, key, name, T, progress)
+                            elevation, elev_info, key, name, nc, T, progress)
         world["timings_s"]["total"] = round(time.perf_counter() - t_start, 3)
         write_text(tmp / "world.json", json.dumps(world, indent=1))
         _swap_into_place(tmp, out)
     except BaseException:
+        nc.kill()
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     world["out"] = str(out)
     progress("done", 1.0, f"world written to {out}")
     return world
+
+
+NET_FILE = "net/world.net.xml"
+
+
+def _start(nc, tmp: Path, out: Path, progress) -> None:
+    """A fresh temporary world folder, and netconvert (or its cached output) into it."""
+    remove_stale_temps(out.parent)
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    (tmp / "net").mkdir(parents=True)
+    if not nc.cached:
+        progress("netconvert", 0.0, "building the SUMO network (netconvert)")
+    nc.start()
 
 
 def _swap_into_place(tmp: Path, out: Path) -> None:
@@ -233,94 +280,97 @@ def _swap_into_place(tmp: Path, out: Path) -> None:
 
 # ---------------------------------------------------------------------------------------
 def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, source,
-                elevation, elev_info, key, name, T: Timer, progress) -> dict:
-    from . import sumo_net
-    from .roadnet import read_net
-    from .roads import build_roads
-    from .terrain import level_under_roads, sample_grid
-
+                elevation, elev_info, key, name, nc, T: Timer, progress) -> dict:
     q = QUALITY[cfg.quality]
     spacing = cfg.spacing
-    (tmp / "net").mkdir()
-    net_rel = "net/world.net.xml"
-    net_file = tmp / net_rel
-    # -- netconvert, cached by its inputs ----------------------------------------------
-    nc_key = cfg.fingerprint({"osm": osm_info["sha256"], "proj": frame.proj_string,
-                              "bbox": [round(b, 6) for b in bbox], "opts": sumo_net.NETCONVERT_VERSION_TAG,
-                              "only": "net"})
-    nc_cache = cfg.cache_path / "net" / f"{nc_key}.net.xml"
-    nc_warn = cfg.cache_path / "net" / f"{nc_key}.warnings.json"
-    proc = errf = None
-    if nc_cache.exists() and nc_warn.exists():
-        shutil.copyfile(nc_cache, net_file)
-    else:
-        progress("netconvert", 0.0, "building the SUMO network (netconvert)")
-        t_nc = time.perf_counter()
-        proc, errf = sumo_net.start_netconvert(osm_xml, net_file, frame.proj_string, bbox,
-                                               log=tmp / "net" / "netconvert.log")
-    # -- meanwhile: terrain and OSM features -------------------------------------------
-    progress("terrain", 0.0, "sampling terrain")
-    with T.stage("terrain_sample"):
-        grid = sample_grid(frame, elevation, extent, spacing)
-        raw = grid.z.copy()
-    progress("features", 0.0, "reading buildings and scenery")
-    with T.stage("features"):
-        from .osm_features import extract_features
-
-        feats = extract_features(osm_xml, frame, bbox)
-    # -- network -----------------------------------------------------------------------
-    with T.stage("netconvert_wait"):
-        if proc is not None:
-            warnings = sumo_net.finish_netconvert(proc, errf, net_file)
-            T.t["netconvert"] = round(time.perf_counter() - t_nc, 3)
-            with atomic_path(nc_cache) as p:
-                shutil.copyfile(net_file, p)
-            write_text(nc_warn, json.dumps(warnings))
-        else:
-            warnings = json.loads(nc_warn.read_text())
-            T.t["netconvert"] = 0.0
-    progress("roads", 0.0, "meshing roads")
-    with T.stage("net_read"):
-        net = read_net(net_file)
-    counts = net.counts()
-    if counts["road_edges"] == 0:
-        raise DataError(f"no drivable road in the area (bbox {bbox[0]:.5f},{bbox[1]:.5f},{bbox[2]:.5f},{bbox[3]:.5f})")
-    from .terrain import TerrainGrid
-
-    natural = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, raw)
-    with T.stage("roads"):
-        roads = build_roads(net, natural.sample, q["road_step_m"])
-    with T.stage("terrain_level"):
-        lev = level_under_roads(grid, roads.support_pts, roads.support_hw)
-    # -- buildings and scenery on the final terrain --------------------------------------
     bounds = [frame.chunk_bounds(i, j) for i, j in chunks]
-    progress("buildings", 0.0, "extruding buildings")
-    with T.stage("buildings"):
-        from .buildings import footprint_union, make_buildings
+    net_rel = NET_FILE
+    try:
+        # -- meanwhile (netconvert has the other core): all that needs no network ---------
+        from .buildings import plan_buildings           # (imported once netconvert runs)
+        from .roads import build_roads
+        from .scenery import plan_scenery
+        from .terrain import TerrainGrid, level_under_roads, sample_grid
 
-        bres = make_buildings(feats, grid.sample, bounds)
-    progress("scenery", 0.0, "placing scenery")
-    with T.stage("scenery"):
-        from .scenery import make_scenery
+        progress("terrain", 0.0, "sampling terrain")
+        with T.stage("terrain_sample"):
+            grid = sample_grid(frame, elevation, extent, spacing)
+            natural = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, grid.z.copy())
+        progress("features", 0.0, "reading buildings and scenery")
+        with T.stage("features"):
+            feats = _read_features(source, osm_xml, frame, bbox)
+        progress("buildings", 0.0, "extruding buildings")
+        with T.stage("buildings_plan"):
+            bplan = plan_buildings(feats, bounds)
+        progress("scenery", 0.0, "placing scenery")
 
-        sres = make_scenery(feats, grid.sample, roads.carriageway, footprint_union(feats), bounds,
-                            density=q["scenery_density"], seed=0)
-    # -- write chunks --------------------------------------------------------------------
-    progress("write", 0.0, "writing chunks")
-    chunk_entries = []
-    with T.stage("write"):
-        for k, (i, j) in enumerate(chunks):
-            chunk_entries.append(_write_chunk(tmp, i, j, bounds[k], grid, roads, bres[k], sres[k], TILE_M))
-            progress("write", (k + 1) / len(chunks), f"chunk {i},{j}")
+        def scenery_plan():
+            return plan_scenery(feats, bplan.all_footprints, bounds, density=q["scenery_density"], seed=0)
+
+        splan = None
+        if nc.running():            # else the scenery process plans it, beside the roads
+            with T.stage("scenery_plan"):
+                splan = scenery_plan()
+        # -- the network, read while netconvert writes it --------------------------------
+        progress("roads", 0.0, "meshing roads")
+        with T.stage("net_read"):
+            net = nc.read_net()
+        nc.running()
+        counts = net.counts()
+        if counts["road_edges"] == 0:
+            raise DataError(f"no drivable road in the area (bbox {bbox[0]:.5f},{bbox[1]:.5f},{bbox[2]:.5f},{bbox[3]:.5f})")
+        for i, j in chunks:
+            (tmp / "chunks" / f"{i}_{j}").mkdir(parents=True)
+
+        # -- after the network: three streams on the two cores (see _Streams) -----------
+        buildings = _Buildings(chunks, bounds, bplan, grid)
+        streams = _Streams(_parallel(), grid)
+        with streams:
+            streams.fork("cosim-layers", lambda: _layers(tmp, chunks, net, splan or scenery_plan, grid,
+                                                         buildings, streams))
+            with T.stage("roads"):
+                roads = build_roads(net, natural.sample, q["road_step_m"])
+            nc.running()
+            with T.stage("road_tiles_plan"):
+                road_tiles = _RoadTiles(chunks, bounds, roads, TILE_M)
+            streams.fork("cosim-tiles", lambda: (road_tiles.write_claimed(tmp, streams),
+                                                 buildings.write_claimed(tmp, streams)))
+            with T.stage("terrain_level"):
+                lev = level_under_roads(grid, roads.support_pts, roads.support_hw)
+            streams.terrain_ready()
+            with T.stage("netconvert_wait"):    # it has long finished writing: check it succeeded
+                warnings = nc.finish(T)
+            progress("write", 0.0, "writing chunks")
+            with T.stage("write"):
+                entries = _write_terrain(tmp, chunks, bounds, grid)
+                tiles = road_tiles.write_claimed(tmp, streams)          # what nobody has taken
+                bfiles = buildings.write_claimed(tmp, streams)
+            with T.stage("streams_wait"):
+                lout, (t2, b2) = streams.results(
+                    lambda: _layers(tmp, chunks, net, splan or scenery_plan, grid, buildings, streams),
+                    lambda: ([], {}))
+    finally:
+        nc.kill()       # only if still running: an error above
+    T.t.update(lout["timings"])
+    bfiles.update(b2)
+    bfiles.update(lout["buildings"])
+    for k, t in tiles + t2:
+        entries[k]["tiles"].update(t)
+    for k, (e, se) in enumerate(zip(entries, lout["chunks"])):
+        cdir = f"chunks/{e['i']}_{e['j']}"
+        be = bfiles[k]
+        for t, f in be["tiles"].items():
+            e["tiles"].setdefault(t, {}).update(f)
+        e["tiles"] = {t: dict(sorted(e["tiles"][t].items())) for t in sorted(e["tiles"])}
+        e["files"] = {"terrain": e["files"]["terrain"],
+                      "tiles": sorted(v for t in e["tiles"].values() for v in t.values()),
+                      "roads_index": f"{cdir}/roads.json", **be["files"], **se["files"]}
+        e["counts"] = {"buildings": be["buildings"], "scenery": se["scenery"]}
+    progress("write", 1.0, "chunks written")
     # -- counts and report ---------------------------------------------------------------
     fc = feats.counts()
-    nb = sum(len(r.records) for r in bres)
-    n_tag = sum(1 for r in bres for rec in r.records if rec["height_source"] == "height")
-    n_lev = sum(1 for r in bres for rec in r.records if rec["height_source"] == "building:levels")
-    scen_counts: dict = {}
-    for r in sres:
-        for inst in r.instances:
-            scen_counts[inst["kind"]] = scen_counts.get(inst["kind"], 0) + 1
+    nb, n_tag, n_lev = buildings.counts()
+    scen_counts = lout["kinds"]
     zs = grid.z
     world = {
         "format": "cosim-world", "format_version": FORMAT_VERSION, "generator": f"cosim netgen {NETGEN_VERSION}",
@@ -338,7 +388,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
                     "z_range_m": [round(float(zs.min()), 2), round(float(zs.max()), 2)],
                     "datum": elev_info.get("datum", "elevation source's vertical datum"),
                     "road_levelling": lev},
-        "chunks": chunk_entries,
+        "chunks": entries,
         "counts": {**counts, "buildings": nb, "buildings_height_from_tags": n_tag,
                    "buildings_height_from_levels": n_lev,
                    "trees": scen_counts.get("tree", 0), "street_lamps": scen_counts.get("street_lamp", 0),
@@ -353,75 +403,448 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         },
         "netconvert_warnings": warnings,
         "quality": cfg.quality,
+        "window": list(cfg.window),
+        "config": {k: v for k, v in cfg.to_dict().items() if k not in ("out", "window")},
         "timings_s": dict(T.t),
     }
     return world
 
 
-def _write_chunk(tmp: Path, i, j, bounds, grid, roads, bres, sres, tile) -> dict:
-    from .buildings import write_chunk_buildings
-    from .scenery import write_chunk_scenery
+def _read_features(source: dict, osm_xml: Path, frame, bbox):
+    """Buildings and scenery, read from the OSM source itself when it is PBF (the same data
+    as the XML netconvert reads, and read twice as fast), else, or when the PBF is not in
+    the id order pyosmium's area assembly needs (an edited extract), from the sorted XML."""
+    from .osm_features import extract_features
 
-    cdir = f"chunks/{i}_{j}"
-    d = tmp / cdir
-    d.mkdir(parents=True)
-    files = {}
-    np.save(d / "terrain.npy", grid.cut(bounds).astype(np.float32))
-    files["terrain"] = f"{cdir}/terrain.npy"
-    # roads: per tile, per class, pieces as OBJ groups
-    tiles: dict = {}
-    index = []
-    xmin, ymin, xmax, ymax = bounds
-    for kind, parts in roads.parts.items():
-        for part in parts:
-            c = part.centroids
-            inside = (c[:, 0] >= xmin) & (c[:, 0] < xmax) & (c[:, 1] >= ymin) & (c[:, 1] < ymax)
-            if not inside.any():
+    f = Path(source.get("file") or osm_xml)
+    if source["kind"] in ("preset", "file") and f.name.lower().endswith(".pbf") and f.is_file():
+        try:
+            return extract_features(f, frame, bbox)
+        except DataError:       # "Way IDs out of order": the XML conversion is sorted
+            pass
+    return extract_features(osm_xml, frame, bbox)
+
+
+# ---------------------------------------------------------------------------------------
+# netconvert
+# ---------------------------------------------------------------------------------------
+class _Netconvert:
+    """netconvert in the background (:meth:`start`), its output cached by its inputs.
+
+    The network is read while netconvert is still writing it (see
+    :func:`netgen.roadnet.read_net_while_written`); :meth:`finish` then checks that it
+    succeeded and caches its output. With a cached network nothing runs."""
+
+    def __init__(self, sumo_net, osm_xml, net_file, proj, bbox, cache: Path, warn: Path):
+        self.sumo_net, self.osm_xml, self.net_file, self.proj, self.bbox = sumo_net, osm_xml, net_file, proj, bbox
+        self.cache, self.warn = cache, warn
+        self.cached = cache.exists() and warn.exists()
+        self.proc = self.errf = None
+        self.started = False
+        self.t_end = None
+
+    def start(self) -> None:
+        self.started = True
+        if self.cached:
+            shutil.copyfile(self.cache, self.net_file)
+            return
+        self.t0 = time.perf_counter()
+        self.proc, self.errf = self.sumo_net.start_netconvert(
+            self.osm_xml, self.net_file, self.proj, self.bbox, log=self.net_file.parent / "netconvert.log")
+
+    def read_net(self):
+        """The network without its internal edges and junctions (nothing meshes them)."""
+        from .roadnet import read_net, read_net_while_written
+
+        if self.proc is None:
+            return read_net(self.net_file, internal=False)
+        try:
+            return read_net_while_written(self.net_file, self.proc, internal=False)
+        except Exception:           # netconvert failed (or wrote garbage): finish() says why
+            self.finish()
+            return read_net(self.net_file, internal=False)
+
+    def finish(self, T: Timer | None = None) -> dict:
+        """netconvert's grouped warnings; raises DataError/BuildError if it failed."""
+        if self.proc is None:
+            if T is not None:
+                T.t["netconvert"] = 0.0
+            return json.loads(self.warn.read_text())
+        self.running()
+        proc, self.proc = self.proc, None
+        warnings = self.sumo_net.finish_netconvert(proc, self.errf, self.net_file)
+        if T is not None:       # its run time, to when it was first seen finished
+            T.t["netconvert"] = round((self.t_end or time.perf_counter()) - self.t0, 3)
+        with atomic_path(self.cache) as p:
+            shutil.copyfile(self.net_file, p)
+        write_text(self.warn, json.dumps(warnings))
+        return warnings
+
+    def running(self) -> bool:
+        """Still running? (Also notes when it was first seen finished, for its timing.)"""
+        if self.proc is None:
+            return False
+        if self.proc.poll() is None:
+            return True
+        self.t_end = self.t_end or time.perf_counter()
+        return False
+
+    def kill(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+        if self.proc is not None:
+            self.proc.wait()
+            self.errf.close()
+            self.proc = None
+
+
+# ---------------------------------------------------------------------------------------
+# the scenery stream
+# ---------------------------------------------------------------------------------------
+def _parallel() -> bool:
+    """A second process helps when there is a second core and processes can be forked."""
+    import multiprocessing as mp
+
+    try:
+        ncpu = len(os.sched_getaffinity(0))
+    except AttributeError:          # not Linux
+        ncpu = os.cpu_count() or 1
+    return ncpu >= 2 and "fork" in mp.get_all_start_methods()
+
+
+def _die_with_parent() -> None:
+    """Linux: have the kernel kill this process when its parent dies (a killed build leaves
+    no worker writing into a folder that the next build removes)."""
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)   # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+class _Streams:
+    """The work after netconvert, on both cores: forked processes and what they share.
+
+    Three streams: this process meshes the roads, levels the terrain and writes the
+    terrain; a child forked right after the network is read (``cosim-layers``) builds the
+    carriageway and places and writes the scenery; a child forked once the roads are
+    meshed (``cosim-tiles``) writes road tiles. Forked children inherit everything they
+    need (nothing is pickled on the way in) and return small dicts through a pipe. The
+    levelled heights go to the children through shared memory (allocated before the
+    forks) once they are final (:meth:`terrain_ready`, :meth:`wait_terrain`). The rest is
+    shared out as it comes: road tiles (by chunk and tile column; this process and
+    cosim-tiles) and buildings (by chunk; all three) are taken one unit at a time by
+    whoever is free (:meth:`next_index`). Without a second core (or without fork) nothing
+    is forked and this process does it all, in order.
+
+    An error in a child comes back as the error of the build; leaving the ``with`` block
+    early kills the children, and the kernel kills them if this process is killed."""
+
+    def __init__(self, parallel: bool, grid):
+        self.parallel = parallel
+        self.grid = grid
+        self.children = []
+        self._in_child = self._have_terrain = False
+        if parallel:
+            import multiprocessing as mp
+
+            self.ctx = mp.get_context("fork")
+            self._z = self.ctx.RawArray("d", grid.z.size)
+            self._ready = self.ctx.Event()
+            self._claims = self.ctx.Array("i", 2)     # next road-tile unit, next building chunk
+        else:
+            self._claims = [0, 0]
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        for proc, _ in self.children:
+            if proc.is_alive():
+                proc.kill()
+            proc.join()
+        return False
+
+    # -- forking ---------------------------------------------------------------------------
+    def fork(self, name: str, fn) -> None:
+        """Run fn() in a forked child (nothing happens without parallelism)."""
+        if not self.parallel:
+            return
+        res_r, res_w = self.ctx.Pipe(duplex=False)
+        proc = self.ctx.Process(target=self._child_main, args=(fn, res_w), daemon=True, name=name)
+        proc.start()
+        res_w.close()
+        self.children.append((proc, res_r))
+
+    def _child_main(self, fn, res_w) -> None:
+        _die_with_parent()
+        self._in_child = True
+        try:
+            out = ("ok", fn())
+        except BaseException as e:      # reported to the parent, which raises it
+            if not isinstance(e, (BuildError, DataError, InputError)):
+                e = BuildError(f"{type(e).__name__} in a build process: {e}")
+            out = ("error", e)
+        res_w.send(out)
+        res_w.close()
+
+    def results(self, *serial) -> list:
+        """The children's results in the order they were forked; without children, the
+        `serial` functions are called here instead."""
+        if not self.parallel:
+            return [fn() for fn in serial]
+        out = []
+        for proc, res_r in self.children:
+            try:
+                status, value = res_r.recv()
+            except EOFError:
+                proc.join()
+                raise BuildError(f"build process {proc.name} died (exit code {proc.exitcode})") from None
+            proc.join()
+            if status == "error":
+                raise value
+            out.append(value)
+        return out
+
+    # -- sharing -----------------------------------------------------------------------------
+    def terrain_ready(self) -> None:
+        """The terrain is levelled: hand the heights to the children."""
+        if self.parallel:
+            np.frombuffer(self._z, dtype=np.float64)[:] = self.grid.z.ravel()
+            self._ready.set()
+
+    def wait_terrain(self) -> None:
+        """In a child: block until the levelled heights are in (then self.grid has them)."""
+        if self._in_child and not self._have_terrain:
+            self._ready.wait()
+            self.grid.z = np.frombuffer(self._z, dtype=np.float64).reshape(self.grid.z.shape)
+            self._have_terrain = True
+
+    def next_index(self, what: str) -> int:
+        """The next unit of `what` ("roads" or "buildings") to write: 0, 1, 2, ... across
+        all processes, so that each unit is written once, by whoever was free."""
+        c = ("roads", "buildings").index(what)
+        if not self.parallel:
+            k = self._claims[c]
+            self._claims[c] += 1
+            return k
+        with self._claims.get_lock():
+            k = self._claims[c]
+            self._claims[c] += 1
+            return k
+
+
+def _layers(tmp: Path, chunks, net, splan, grid, buildings, streams: _Streams) -> dict:
+    """The carriageway, the scenery placed on it and on the final terrain, written; then
+    building chunks that nobody has taken yet. Returns file names, counts, timings.
+    `splan` is the scenery plan, or the function that makes it."""
+    from .roads import carriageway_parts
+    from .scenery import PolygonSet, finish_scenery, place_scenery, write_chunk_scenery
+
+    T = Timer()
+    if callable(splan):
+        with T.stage("scenery_plan"):
+            splan = splan()
+    with T.stage("carriageway"):
+        road = PolygonSet(carriageway_parts(net))
+    with T.stage("scenery_place"):
+        placed = place_scenery(splan, road)
+    with T.stage("scenery_terrain_wait"):
+        streams.wait_terrain()
+    with T.stage("scenery_finish"):
+        sres = finish_scenery(placed, grid.sample)
+    chunks_out, kinds = [], {}
+    with T.stage("scenery_write"):
+        for (i, j), r in zip(chunks, sres):
+            cdir = f"chunks/{i}_{j}"
+            sf = write_chunk_scenery(r, tmp / cdir)
+            chunks_out.append({"files": {f"scenery_{k}": f"{cdir}/{v}" for k, v in sf.items() if v},
+                               "scenery": len(r.instances)})
+            for inst in r.instances:
+                kinds[inst["kind"]] = kinds.get(inst["kind"], 0) + 1
+    with T.stage("buildings_in_layers"):
+        bfiles = buildings.write_claimed(tmp, streams) if streams.parallel else {}
+    return {"chunks": chunks_out, "kinds": kinds, "buildings": bfiles, "timings": dict(T.t)}
+
+
+# ---------------------------------------------------------------------------------------
+# writing
+# ---------------------------------------------------------------------------------------
+def _write_terrain(tmp: Path, chunks, bounds, grid) -> list:
+    """Each chunk's terrain.npy; returns the chunk entries of world.json, to be completed."""
+    entries = []
+    for (i, j), b in zip(chunks, bounds):
+        cdir = f"chunks/{i}_{j}"
+        np.save(tmp / cdir / "terrain.npy", grid.cut(b).astype(np.float32))
+        entries.append({"i": i, "j": j, "bounds_m": list(b), "files": {"terrain": f"{cdir}/terrain.npy"},
+                        "tiles": {}, "counts": {}})
+    return entries
+
+
+class _Buildings:
+    """The planned buildings, lifted onto the final terrain and written chunk by chunk by
+    whichever process is free (:meth:`write_claimed`): per chunk one OBJ per tile (a group
+    per building, in the tile of its centroid), buildings.glb and buildings.json."""
+
+    def __init__(self, chunks, bounds, bplan, grid):
+        self.chunks, self.bounds, self.bplan, self.grid = chunks, bounds, bplan, grid
+        self.placed = None
+
+    def counts(self) -> tuple:
+        """(buildings, heights from tags, heights from levels) over all chunks."""
+        recs = [r for r, bad in zip(self.bplan.records, self.bplan.failed) if not bad]
+        return (len(recs), sum(1 for r in recs if r["height_source"] == "height"),
+                sum(1 for r in recs if r["height_source"] == "building:levels"))
+
+    def write_chunk(self, tmp: Path, k: int) -> dict:
+        from .buildings import place_buildings, write_chunk_buildings
+
+        if self.placed is None:         # all buildings at once (cheap), in each process
+            self.placed = place_buildings(self.bplan, self.grid.sample)
+        (i, j), r = self.chunks[k], self.placed[k]
+        cdir = f"chunks/{i}_{j}"
+        tiles: dict = {}
+        if r.records:
+            batch = ObjBatch()
+            t, nt = tile_index(np.array([rec["centroid"] for rec in r.records]), self.bounds[k], TILE_M)
+            for tt in np.unique(t):
+                ks = np.flatnonzero(t == tt)
+                V, F, groups = _gather(r.vertices, r.faces, r.vstart, r.fstart, ks,
+                                       [r.records[n]["id"] for n in ks])
+                a, b = int(tt) // nt, int(tt) % nt
+                rel = f"{cdir}/tiles/{a}_{b}/building.obj"
+                batch.add(tmp / rel, V, F, groups)
+                tiles[f"{a}_{b}"] = {"building": rel}
+            batch.write()
+        # buildings.obj would repeat the building tiles: the world has the tiles and the GLB
+        bf = write_chunk_buildings(r, tmp / cdir, obj=False)
+        return {"files": {f"buildings_{n}": f"{cdir}/{v}" for n, v in bf.items() if v},
+                "tiles": tiles, "buildings": len(r.records)}
+
+    def write_claimed(self, tmp: Path, streams: _Streams) -> dict:
+        """Write building chunks as long as there are chunks nobody has taken: {chunk: ...}.
+        (In a child, waits for the levelled terrain first.)"""
+        out = {}
+        while True:
+            k = streams.next_index("buildings")
+            if k >= len(self.chunks):
+                return out
+            if self.placed is None:
+                streams.wait_terrain()
+            out[k] = self.write_chunk(tmp, k)
+
+
+def _gather(V, F, vstart, fstart, ks, names):
+    """The pieces ks (each owning its own vertex and face ranges) as one mesh with groups."""
+    vcnt = vstart[ks + 1] - vstart[ks]
+    fcnt = fstart[ks + 1] - fstart[ks]
+    vnew = np.cumsum(vcnt) - vcnt
+    fnew = np.cumsum(fcnt) - fcnt
+    vidx = np.repeat(vstart[ks] - vnew, vcnt) + np.arange(vcnt.sum())
+    fidx = np.repeat(fstart[ks] - fnew, fcnt) + np.arange(fcnt.sum())
+    Fo = F[fidx] + np.repeat(vnew - vstart[ks], fcnt)[:, None]
+    groups = [(n, int(a), int(a + c)) for n, a, c in zip(names, fnew, fcnt)]
+    return V[vidx], Fo, groups
+
+
+class _RoadTiles:
+    """The road pieces sorted into per-tile OBJ files of their class (a piece goes to the tile
+    holding its centroid) and each chunk's roads.json index; written a chunk's tile column
+    at a time by whichever process is free (:meth:`write_claimed`)."""
+
+    def __init__(self, chunks, bounds, roads, tile: float):
+        self.chunks, self.bounds = chunks, bounds
+        self.nt = [tile_index(np.zeros((0, 2)), b, tile)[1] for b in bounds]     # tiles per side
+        # per chunk, in order (class, part, tile, piece): (a, b, kind, part, pieces, V, F, face counts)
+        self.items = [[] for _ in chunks]
+        for kind, parts in roads.parts.items():
+            for part in parts:
+                self._sort_part(kind, part, tile)
+
+    def _sort_part(self, kind, part, tile) -> None:
+        from .buildings import chunk_index
+
+        c = part.centroids
+        ch = chunk_index(c[:, 0], c[:, 1], self.bounds)
+        tt = np.full(len(c), -1)
+        nts = {}
+        for k in np.unique(ch[ch >= 0]):
+            sel = ch == k
+            tt[sel], nts[k] = tile_index(c[sel], self.bounds[k], tile)
+        ok = np.flatnonzero(ch >= 0)
+        if not len(ok):
+            return
+        # pieces in (chunk, tile, piece) order; each run of one (chunk, tile) is one item
+        order = ok[np.lexsort((ok, tt[ok], ch[ok]))]
+        grp = ch[order] * 1_000_000 + tt[order]
+        starts = np.r_[0, np.flatnonzero(grp[1:] != grp[:-1]) + 1]
+        ends = np.r_[starts[1:], len(order)]
+        # every item's faces, its used vertices renumbered from 0 (one np.unique for all)
+        fcnt = part.fstart[order + 1] - part.fstart[order]
+        fidx = np.repeat(part.fstart[order] - (np.cumsum(fcnt) - fcnt), fcnt) + np.arange(fcnt.sum())
+        fg = np.repeat(np.repeat(np.arange(len(starts)), ends - starts), fcnt)
+        nv = len(part.vertices)
+        uniq, inv = np.unique((fg[:, None] * nv + part.faces[fidx]).ravel(), return_inverse=True)
+        vfirst = np.searchsorted(uniq // nv, np.arange(len(starts)))
+        inv = inv.reshape(-1, 3) - vfirst[fg][:, None]
+        V = part.vertices[uniq % nv]
+        ffirst = np.r_[0, np.cumsum(np.add.reduceat(fcnt, starts))]
+        vbound = np.r_[vfirst, len(uniq)]
+        for g, (s0, s1) in enumerate(zip(starts, ends)):
+            k = int(ch[order[s0]])
+            t = int(tt[order[s0]])
+            self.items[k].append((t // nts[k], t % nts[k], kind, part, order[s0:s1],
+                                  V[vbound[g]:vbound[g + 1]], inv[ffirst[g]:ffirst[g + 1]], fcnt[s0:s1]))
+
+    def tasks(self) -> list:
+        """The units of writing: (chunk, tile column a) pairs, the busy chunks of a city
+        being too big to leave to one process; roads.json goes with column 0."""
+        return [(k, a) for k in range(len(self.chunks)) for a in range(self.nt[k])]
+
+    def write_task(self, tmp: Path, k: int, col: int) -> dict:
+        """Chunk k's road tiles of tile column `col` (and with column 0 its roads.json);
+        returns {tile: {class: file}}."""
+        i, j = self.chunks[k]
+        cdir = f"chunks/{i}_{j}"
+        files: dict = {}                # (a, b, kind) -> [(V, F, groups)]
+        for a, b, kind, part, pieces, V, F, pf in self.items[k]:
+            if a != col:
                 continue
-            t, nt = tile_index(c, bounds, tile)
-            for tt in np.unique(t[inside]):
-                sel = inside & (t == tt)
-                sub = split_pieces(part.vertices, part.faces, part.fstart, sel)
-                if sub is None:
-                    continue
-                V, F, ks, a, b = sub
-                tiles.setdefault((int(tt) // nt, int(tt) % nt, kind), []).append(
-                    (V, F, [(f"{part.elements[k]}/{part.ids[k]}", aa, bb) for k, aa, bb in zip(ks, a, b)]))
-                for k in ks:
-                    index.append({"id": part.ids[k], "element": part.elements[k], "class": kind,
-                                  "osm": [f"way/{w}" for w in part.osm[k]], "tile": f"{int(tt) // nt}_{int(tt) % nt}"})
-    # buildings into the same tiles
-    if bres.records:
-        for rec in bres.records:
-            g = bres.scene.geometry.get(rec["id"])
-            if g is None:
-                continue
-            t, nt = tile_index(np.array([rec["centroid"]]), bounds, tile)
-            tiles.setdefault((int(t[0]) // nt, int(t[0]) % nt, "building"), []).append(
-                (np.asarray(g.vertices), np.asarray(g.faces), [(rec["id"], 0, len(g.faces))]))
-    tile_files: dict = {}
-    for (a, b, kind), items in sorted(tiles.items()):
-        V, F, groups, off, foff = [], [], [], 0, 0
-        for v, f, gs in items:
-            V.append(v)
-            F.append(f + off)
-            groups.extend((n, s + foff, e + foff) for n, s, e in gs)
-            off += len(v)
-            foff += len(f)
-        rel = f"{cdir}/tiles/{a}_{b}/{kind}.obj"
-        write_obj(tmp / rel, np.vstack(V), np.vstack(F), groups)
-        tile_files.setdefault(f"{a}_{b}", {})[kind] = rel
-    files["tiles"] = sorted(set(v for t in tile_files.values() for v in t.values()))
-    write_text(d / "roads.json", json.dumps({"bounds": list(bounds), "pieces": index}))
-    files["roads_index"] = f"{cdir}/roads.json"
-    bf = write_chunk_buildings(bres, d)
-    for k, v in bf.items():
-        if v:
-            files[f"buildings_{k}"] = f"{cdir}/{v}"
-    sf = write_chunk_scenery(sres, d)
-    for k, v in sf.items():
-        if v:
-            files[f"scenery_{k}"] = f"{cdir}/{v}"
-    return {"i": i, "j": j, "bounds_m": list(bounds), "files": files,
-            "tiles": {k: v for k, v in sorted(tile_files.items())},
-            "counts": {"buildings": len(bres.records), "scenery": len(sres.instances)}}
+            pstart = np.cumsum(pf) - pf
+            groups = [(f"{part.elements[p]}/{part.ids[p]}", int(x), int(x + y))
+                      for p, x, y in zip(pieces, pstart, pf)]
+            files.setdefault((a, b, kind), []).append((V, F, groups))
+        batch = ObjBatch()
+        tiles: dict = {}
+        for (a, b, kind), items in sorted(files.items()):
+            V, F, groups, off, foff = [], [], [], 0, 0
+            for v, f, gs in items:
+                V.append(v)
+                F.append(f + off)
+                groups.extend((n, s + foff, e + foff) for n, s, e in gs)
+                off += len(v)
+                foff += len(f)
+            rel = f"{cdir}/tiles/{a}_{b}/{kind}.obj"
+            batch.add(tmp / rel, np.vstack(V), np.vstack(F), groups)
+            tiles.setdefault(f"{a}_{b}", {})[kind] = rel
+        batch.write()
+        if col == 0:
+            index = [{"id": part.ids[p], "element": part.elements[p], "class": kind,
+                      "osm": [f"way/{w}" for w in part.osm[p]], "tile": f"{a}_{b}"}
+                     for a, b, kind, part, pieces, _, _, _ in self.items[k] for p in pieces]
+            write_file(tmp / cdir / "roads.json",
+                       json.dumps({"bounds": list(self.bounds[k]), "pieces": index}).encode())
+        return tiles
+
+    def write_claimed(self, tmp: Path, streams: _Streams) -> list:
+        """Write tasks as long as there are tasks nobody has taken: [(chunk, tiles)]."""
+        out = []
+        tasks = self.tasks()
+        while True:
+            n = streams.next_index("roads")
+            if n >= len(tasks):
+                return out
+            k, col = tasks[n]
+            out.append((k, self.write_task(tmp, k, col)))

@@ -39,6 +39,15 @@ The solid spans ``base_z + min_height`` .. ``base_z + height``.
 Footprints are repaired with ``shapely.make_valid`` (polygonal parts kept); parts and
 buildings under 2 m2 are dropped and counted. Buildings mapped as a node get a placeholder
 box by type (8 x 8 m house, 3 x 6 m garage...), ``placeholder: true`` in their record.
+
+Pipeline
+--------
+:func:`make_buildings` is :func:`plan_buildings` (footprints, heights, chunks, all solids
+extruded at once on a base of 0, and the ground sample points of every footprint; no
+terrain needed, so a world build does it while netconvert runs) then
+:func:`place_buildings` (one vectorised terrain lookup for the bases, every solid lifted by
+its base). Meshes stay arrays (:class:`ChunkBuildings`); files are written from them
+directly (GLB and OBJ by :mod:`netgen.meshio`, records as compact JSON).
 """
 from __future__ import annotations
 
@@ -46,17 +55,16 @@ import json
 import math
 import re
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 import shapely
-import trimesh
 from mapbox_earcut import triangulate_float64
 from shapely.geometry import Polygon, box
-from trimesh.visual.material import PBRMaterial
 
-from ._atomic import atomic_path, write_text
 from .errors import BuildError
+from .meshio import glb_bytes, write_file, write_obj
 from .osm_features import OSMFeatures, polygonal
 
 LEVEL_HEIGHT_M = 3.0
@@ -202,14 +210,55 @@ def building_min_height(tags, height: float) -> float:
 # ------------------------------------------------------------------------------------------
 @dataclass
 class ChunkBuildings:
-    """One chunk's buildings: a scene (one node per building, named by OSM id), one merged
-    mesh for physics, the records, and counts."""
+    """One chunk's buildings: the records, the footprints, counts, and the meshes as arrays.
+
+    Building k (``records[k]``) owns ``vertices[vstart[k]:vstart[k+1]]`` and
+    ``faces[fstart[k]:fstart[k+1]]`` (face indices into ``vertices``); ``material[k]``
+    is its colour group (a key of :data:`COLOURS`). ``scene`` (one trimesh node per
+    building, named by OSM id) and ``mesh`` (all merged, None without buildings) are made
+    from the arrays when asked for; the build writes the arrays directly."""
     bounds: tuple
-    scene: trimesh.Scene
-    mesh: trimesh.Trimesh | None
     records: list = field(default_factory=list)
     footprints: dict = field(default_factory=dict)    # id -> shapely geometry (world m)
     stats: dict = field(default_factory=dict)
+    vertices: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    faces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int64))
+    vstart: np.ndarray = field(default_factory=lambda: np.zeros(1, np.int64))
+    fstart: np.ndarray = field(default_factory=lambda: np.zeros(1, np.int64))
+    material: list = field(default_factory=list)
+
+    def piece(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Vertices and (local) faces of building k."""
+        v0, v1, f0, f1 = self.vstart[k], self.vstart[k + 1], self.fstart[k], self.fstart[k + 1]
+        return self.vertices[v0:v1], self.faces[f0:f1] - v0
+
+    @cached_property
+    def scene(self) -> "trimesh.Scene":
+        import trimesh
+
+        scene = trimesh.Scene()
+        mats = _materials()
+        for k, rec in enumerate(self.records):
+            v, f = self.piece(k)
+            mesh = trimesh.Trimesh(v, f, process=False,
+                                   visual=trimesh.visual.TextureVisuals(material=mats[self.material[k]]))
+            scene.add_geometry(mesh, node_name=rec["id"], geom_name=rec["id"])
+        return scene
+
+    @cached_property
+    def mesh(self) -> "trimesh.Trimesh | None":
+        import trimesh
+
+        if not self.records:
+            return None
+        return trimesh.Trimesh(self.vertices, self.faces, process=False)
+
+
+def _materials() -> dict:
+    from trimesh.visual.material import PBRMaterial
+
+    return {k: PBRMaterial(name=f"building_{k}", baseColorFactor=list(c), metallicFactor=0.0,
+                           roughnessFactor=0.9) for k, c in COLOURS.items()}
 
 
 def _footprints(features: OSMFeatures):
@@ -239,20 +288,27 @@ def _footprints(features: OSMFeatures):
     return out, stats
 
 
+def footprint_parts(features: OSMFeatures) -> list:
+    """Every building footprint (repaired; node placeholders included), as a list."""
+    return [g for _, g, _, _ in _footprints(features)[0]]
+
+
 def footprint_union(features: OSMFeatures):
     """Union of all building footprints (repaired; node placeholders included): the
-    ``building_area`` that scenery keeps trees and benches out of."""
-    fps, _ = _footprints(features)
-    if not fps:
+    ``building_area`` that scenery keeps trees and benches out of. (A build hands scenery
+    the footprints themselves, :func:`footprint_parts`: a point test needs no union.)"""
+    parts = footprint_parts(features)
+    if not parts:
         return Polygon()
-    return shapely.union_all([g for _, g, _, _ in fps])
+    return shapely.union_all(parts)
 
 
-def _base_heights(geoms, ground, sink_m: float) -> np.ndarray:
-    """Lowest ground under each footprint (vertices, outline every <= 2 m, 2 m inner grid)."""
+def _base_samples(geoms) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the ground is sampled under each footprint (vertices, outline every <= 2 m, a
+    2 m inner grid): (x, y, footprint index), all footprints at once."""
     n = len(geoms)
     if n == 0:
-        return np.zeros(0)
+        return np.zeros(0), np.zeros(0), np.zeros(0, np.int64)
     areas = shapely.area(geoms)
     step = np.maximum(SAMPLE_STEP_M, np.sqrt(areas / MAX_SAMPLES))
     outline = shapely.segmentize(geoms, step)
@@ -271,13 +327,19 @@ def _base_heights(geoms, ground, sink_m: float) -> np.ndarray:
     gy = oy[gid] + (k // nx[gid]) * step[gid]
     shapely.prepare(geoms)
     inside = shapely.contains_xy(geoms[gid], gx, gy)
-    xs, ys, ids = [xy[:, 0], gx[inside]], [xy[:, 1], gy[inside]], [idx, gid[inside]]
-    x, y, ids = np.concatenate(xs), np.concatenate(ys), np.concatenate(ids)
+    return (np.concatenate([xy[:, 0], gx[inside]]), np.concatenate([xy[:, 1], gy[inside]]),
+            np.concatenate([idx, gid[inside]]))
+
+
+def _base_heights(n: int, x, y, owner, ground, sink_m: float) -> np.ndarray:
+    """Lowest ground under each of n footprints (samples from :func:`_base_samples`), less sink_m."""
+    if n == 0:
+        return np.zeros(0)
     z = np.asarray(ground(x, y), dtype=float).reshape(-1)
     if z.shape != x.shape or not np.all(np.isfinite(z)):
         raise BuildError("ground() returned no height for some building footprints")
     base = np.full(n, np.inf)
-    np.minimum.at(base, ids, z)
+    np.minimum.at(base, owner, z)
     return base - sink_m
 
 
@@ -350,18 +412,20 @@ def extrude_footprints(geoms, z0, z1):
     wall_poly = np.concatenate([p_of_pt, p_of_pt])
     # roofs and floors: earcut per polygon
     tris, tri_poly = [], []
-    ring_ends_all = rstart + cnt
-    for p in np.flatnonzero(pcnt >= 3):
+    # each polygon's kept rings (rings of a polygon are contiguous): their ends, from 0
+    kept = np.flatnonzero(rk)
+    ring_end = (rstart + cnt)[kept]
+    r0 = np.searchsorted(poly_of_ring[kept], np.arange(npoly), side="left")
+    r1 = np.searchsorted(poly_of_ring[kept], np.arange(npoly), side="right")
+    for p in np.flatnonzero(pcnt >= 3).tolist():
         a, n = pstart[p], pcnt[p]
-        rs = np.flatnonzero((poly_of_ring == p) & rk)
-        ends = (ring_ends_all[rs] - a).astype(np.uint32)
-        t = triangulate_float64(xy[a:a + n], ends).reshape(-1, 3).astype(np.int64)
+        t = triangulate_float64(xy[a:a + n], (ring_end[r0[p]:r1[p]] - a).astype(np.uint32))
         if len(t):
-            tris.append(t + a)
-            tri_poly.append(np.full(len(t), p))
+            tris.append(t.reshape(-1, 3).astype(np.int64) + a)
+            tri_poly.append(p)
     if tris:
         t = np.concatenate(tris)
-        tp = np.concatenate(tri_poly)
+        tp = np.repeat(np.array(tri_poly, dtype=np.int64), [len(x) for x in tris])
         e1, e2 = xy[t[:, 1]] - xy[t[:, 0]], xy[t[:, 2]] - xy[t[:, 0]]
         up = (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) >= 0
         t = np.where(up[:, None], t, t[:, ::-1])
@@ -409,6 +473,115 @@ def chunk_index(px, py, chunk_bounds_list) -> np.ndarray:
     return out
 
 
+@dataclass
+class BuildingPlan:
+    """Everything about the buildings that does not need the terrain (see :func:`plan_buildings`).
+
+    Arrays are over the kept buildings (those in a chunk), in record order: the solids
+    extruded from z = min_height to z = height above a base of 0, and the ground samples
+    that will give each its base."""
+    chunk_bounds: list
+    stats: dict
+    outside: int
+    all_footprints: list               # every footprint, in chunks or not (scenery keeps out)
+    ids: list
+    chunk: np.ndarray
+    footprints: list
+    records: list                      # without base_z
+    material: list
+    vertices: np.ndarray
+    faces: np.ndarray
+    vstart: np.ndarray
+    fstart: np.ndarray
+    failed: np.ndarray                 # bool: nothing left to extrude (degenerate rings)
+    sample_x: np.ndarray
+    sample_y: np.ndarray
+    sample_owner: np.ndarray
+
+
+def plan_buildings(features: OSMFeatures, chunk_bounds_list) -> BuildingPlan:
+    """Footprints, heights, chunks and solids (on a base of 0) of every building.
+
+    The terrain is not needed: the build does this while netconvert runs, and
+    :func:`place_buildings` then lifts each solid onto the final (road-levelled) terrain."""
+    chunk_bounds_list = [tuple(map(float, b)) for b in chunk_bounds_list]
+    fps, stats = _footprints(features)
+    geoms = np.array([g for _, g, _, _ in fps], dtype=object)
+    if len(fps):
+        rp = shapely.get_coordinates(shapely.point_on_surface(geoms))
+        chunk = chunk_index(rp[:, 0], rp[:, 1], chunk_bounds_list)
+    else:
+        chunk = np.zeros(0, np.int64)
+    sel = np.flatnonzero(chunk >= 0)
+    areas = shapely.area(geoms[sel]) if len(sel) else np.zeros(0)
+    cent = shapely.get_coordinates(shapely.centroid(geoms[sel])) if len(sel) else np.zeros((0, 2))
+    hs = [building_height(fps[i][2], float(a)) for i, a in zip(sel, areas)]
+    mhs = np.array([building_min_height(fps[i][2], h) for i, (h, _) in zip(sel, hs)])
+    hv = np.array([h for h, _ in hs])
+    V, F, vstart, fstart = extrude_footprints(geoms[sel], mhs, hv)
+    sx, sy, owner = _base_samples(geoms[sel])
+    records, material = [], []
+    for n, i in enumerate(sel):
+        ident, g, tags, placeholder = fps[i]
+        kind = tags.get("building", "yes")
+        (h, src), mh = hs[n], mhs[n]
+        material.append(_group(kind))
+        records.append({
+            "id": ident, "kind": kind, "height_m": float(h), "height_source": src,
+            "base_z": None, "min_height_m": float(mh),
+            "footprint_area_m2": round(float(areas[n]), 2),
+            "centroid": [round(float(cent[n, 0]), 2), round(float(cent[n, 1]), 2)],
+            "levels": parse_levels(tags.get("building:levels")),
+            "name": tags.get("name"), "placeholder": bool(placeholder),
+        })
+    return BuildingPlan(chunk_bounds=chunk_bounds_list, stats=stats, outside=int((chunk < 0).sum()),
+                        all_footprints=[g for _, g, _, _ in fps],
+                        ids=[fps[i][0] for i in sel], chunk=chunk[sel],
+                        footprints=[fps[i][1] for i in sel], records=records, material=material,
+                        vertices=V, faces=F, vstart=vstart, fstart=fstart,
+                        failed=(fstart[1:] == fstart[:-1]), sample_x=sx, sample_y=sy, sample_owner=owner)
+
+
+def place_buildings(plan: BuildingPlan, ground, sink_m: float = 0.1) -> list[ChunkBuildings]:
+    """Put the planned solids on the ground: base = lowest ground under the footprint less
+    sink_m, every vertex lifted by its building's base; one :class:`ChunkBuildings` per chunk."""
+    n = len(plan.ids)
+    base = _base_heights(n, plan.sample_x, plan.sample_y, plan.sample_owner, ground, sink_m)
+    nv = np.diff(plan.vstart)
+    V = plan.vertices.copy()
+    V[:, 2] += np.repeat(base, nv)
+    results = []
+    for k, bounds in enumerate(plan.chunk_bounds):
+        r = ChunkBuildings(bounds=bounds, stats={"buildings": 0})
+        mine = np.flatnonzero(plan.chunk == k)
+        failed = mine[plan.failed[mine]]
+        if len(failed):             # nothing left of a degenerate ring: count it
+            r.stats["extrude_failed"] = len(failed)
+        mine = mine[~plan.failed[mine]]
+        if len(mine):
+            vs, ve = plan.vstart[mine], plan.vstart[mine + 1]
+            fs, fe = plan.fstart[mine], plan.fstart[mine + 1]
+            vcnt, fcnt = ve - vs, fe - fs
+            vidx = np.repeat(vs - np.cumsum(vcnt) + vcnt, vcnt) + np.arange(vcnt.sum())
+            fidx = np.repeat(fs - np.cumsum(fcnt) + fcnt, fcnt) + np.arange(fcnt.sum())
+            r.vertices = V[vidx]
+            # faces: global vertex numbers -> numbers in this chunk's vertex array
+            shift = np.repeat(np.cumsum(vcnt) - vcnt - vs, fcnt)
+            r.faces = plan.faces[fidx] + shift[:, None]
+            r.vstart = np.r_[0, np.cumsum(vcnt)]
+            r.fstart = np.r_[0, np.cumsum(fcnt)]
+            r.material = [plan.material[i] for i in mine]
+            for i in mine:
+                r.footprints[plan.ids[i]] = plan.footprints[i]
+                r.records.append({**plan.records[i], "base_z": float(base[i])})
+        r.stats["buildings"] = len(r.records)
+        # global drop counts are reported with every chunk (they happen before assignment)
+        r.stats.update(plan.stats)
+        r.stats["outside_chunks"] = plan.outside
+        results.append(r)
+    return results
+
+
 def make_buildings(features: OSMFeatures, ground, chunk_bounds_list, sink_m: float = 0.1
                    ) -> list[ChunkBuildings]:
     """Extrude every building onto the terrain and sort them into chunks.
@@ -416,87 +589,38 @@ def make_buildings(features: OSMFeatures, ground, chunk_bounds_list, sink_m: flo
     ``ground(x_array, y_array) -> z_array`` is the terrain height (vectorised);
     ``chunk_bounds_list`` a list of (xmin, ymin, xmax, ymax). Returns one
     :class:`ChunkBuildings` per chunk, in the same order. Buildings whose representative
-    point is in no chunk are left out.
+    point is in no chunk are left out. (:func:`plan_buildings` then :func:`place_buildings`.)
     """
-    chunk_bounds_list = [tuple(map(float, b)) for b in chunk_bounds_list]
-    fps, stats = _footprints(features)
-    results = [ChunkBuildings(bounds=b, scene=trimesh.Scene(), mesh=None,
-                              stats={"buildings": 0}) for b in chunk_bounds_list]
-    if not fps:
-        for r in results:
-            r.stats.update(stats)
-        return results
-    geoms = np.array([g for _, g, _, _ in fps], dtype=object)
-    rp = shapely.get_coordinates(shapely.point_on_surface(geoms))
-    chunk = chunk_index(rp[:, 0], rp[:, 1], chunk_bounds_list)
-    sel = np.flatnonzero(chunk >= 0)
-    base = np.zeros(len(fps))
-    base[sel] = _base_heights(geoms[sel], ground, sink_m)
-    areas = shapely.area(geoms)
-    cent = shapely.get_coordinates(shapely.centroid(geoms))
-    per_chunk = [([], []) for _ in chunk_bounds_list]
-    materials = {k: PBRMaterial(name=f"building_{k}", baseColorFactor=list(c), metallicFactor=0.0,
-                                roughnessFactor=0.9) for k, c in COLOURS.items()}
-    hs = [building_height(fps[i][2], float(areas[i])) for i in sel]
-    mhs = np.array([building_min_height(fps[i][2], h) for i, (h, _) in zip(sel, hs)])
-    hv = np.array([h for h, _ in hs])
-    V, F, vstart, fstart = extrude_footprints(geoms[sel], base[sel] + mhs, base[sel] + hv)
-    for n, i in enumerate(sel):
-        ident, g, tags, placeholder = fps[i]
-        k = int(chunk[i])
-        kind = tags.get("building", "yes")
-        (h, src), mh = hs[n], mhs[n]
-        if fstart[n + 1] == fstart[n]:      # nothing left of a degenerate ring: count it
-            results[k].stats["extrude_failed"] = results[k].stats.get("extrude_failed", 0) + 1
-            continue
-        v = V[vstart[n]:vstart[n + 1]]
-        f = F[fstart[n]:fstart[n + 1]] - vstart[n]
-        mesh = trimesh.Trimesh(v, f, process=False,
-                               visual=trimesh.visual.TextureVisuals(material=materials[_group(kind)]))
-        results[k].scene.add_geometry(mesh, node_name=ident, geom_name=ident)
-        per_chunk[k][0].append(v)
-        per_chunk[k][1].append(f)
-        results[k].footprints[ident] = g
-        results[k].records.append({
-            "id": ident, "kind": kind, "height_m": float(h), "height_source": src,
-            "base_z": float(base[i]), "min_height_m": float(mh),
-            "footprint_area_m2": round(float(areas[i]), 2),
-            "centroid": [round(float(cent[i, 0]), 2), round(float(cent[i, 1]), 2)],
-            "levels": parse_levels(tags.get("building:levels")),
-            "name": tags.get("name"), "placeholder": bool(placeholder),
-        })
-    for k, r in enumerate(results):
-        vs, fs = per_chunk[k]
-        if vs:
-            offs = np.cumsum([0] + [len(v) for v in vs[:-1]])
-            r.mesh = trimesh.Trimesh(np.vstack(vs), np.vstack([f + o for f, o in zip(fs, offs)]),
-                                     process=False)
-        r.stats["buildings"] = len(r.records)
-        # global drop counts are reported with every chunk (they happen before assignment)
-        r.stats.update(stats)
-        r.stats["outside_chunks"] = int((chunk < 0).sum())
-    return results
+    return place_buildings(plan_buildings(features, chunk_bounds_list), ground, sink_m)
 
 
-def write_chunk_buildings(result: ChunkBuildings, out_dir) -> dict:
-    """Write buildings.glb (named nodes), buildings.obj (merged) and buildings.json (records).
+def write_chunk_buildings(result: ChunkBuildings, out_dir, obj: bool = True) -> dict:
+    """Write buildings.glb (named nodes), buildings.obj (merged; only if `obj`) and
+    buildings.json (records).
 
     Returns {"glb": ..., "obj": ..., "json": ...} with file names relative to ``out_dir``;
     a chunk without buildings writes only the JSON (an empty list) and maps glb/obj to None.
-    Files are written atomically; a write error is a :class:`BuildError`.
+    Files are written under a temporary name and renamed; a write error is a
+    :class:`BuildError`. (A world build leaves out buildings.obj: its tiles already hold
+    every building as a named OBJ group.)
     """
     out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     files = {"glb": None, "obj": None, "json": "buildings.json"}
     if result.records:
-        with atomic_path(out / "buildings.glb") as tmp:
-            result.scene.export(tmp, file_type="glb")
-        with atomic_path(out / "buildings.obj") as tmp:
-            result.mesh.export(tmp, file_type="obj", include_normals=False, include_color=False,
-                               include_texture=False)
-        files["glb"], files["obj"] = "buildings.glb", "buildings.obj"
-    write_text(out / "buildings.json", json.dumps(
-        {"bounds": list(result.bounds), "buildings": result.records, "stats": _jsonable(result.stats)},
-        indent=1))
+        groups = list(COLOURS)
+        write_file(out / "buildings.glb", glb_bytes(
+            [r["id"] for r in result.records], result.vertices, result.faces, result.vstart,
+            result.fstart, [groups.index(m) for m in result.material],
+            [{"name": f"building_{k}", "rgba": c, "roughness": 0.9, "metallic": 0.0}
+             for k, c in COLOURS.items()]))
+        files["glb"] = "buildings.glb"
+        if obj:
+            write_obj(out / "buildings.obj", result.vertices, result.faces)
+            files["obj"] = "buildings.obj"
+    write_file(out / "buildings.json", json.dumps(
+        {"bounds": list(result.bounds), "buildings": result.records,
+         "stats": _jsonable(result.stats)}).encode())
     return files
 
 
@@ -505,5 +629,6 @@ def _jsonable(d: dict) -> dict:
 
 
 __all__ = ["building_height", "building_min_height", "default_height", "parse_length",
-           "parse_levels", "make_buildings", "write_chunk_buildings", "footprint_union",
+           "parse_levels", "make_buildings", "plan_buildings", "place_buildings", "BuildingPlan",
+           "write_chunk_buildings", "footprint_union", "footprint_parts",
            "ChunkBuildings", "chunk_index", "extrude_footprints", "LEVEL_HEIGHT_M", "MIN_AREA_M2"]

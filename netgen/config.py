@@ -42,6 +42,7 @@ class WorldConfig:
     # --- size ---
     chunks: int = 1                          # rings around the centre chunk (1 -> 3 x 3)
     chunk_size_m: float = 1000.0
+    window: tuple[int, int] = (0, 0)         # the chunk the rings are centred on (streaming)
     # --- elevation: exactly one of dem / elevation_url / flat (or the preset's own) ---
     dem: list[str] = field(default_factory=list)
     elevation_url: str | None = None
@@ -115,7 +116,7 @@ class WorldConfig:
         if unknown:
             raise InputError(f"unknown world setting(s): {', '.join(sorted(unknown))}")
         d = dict(d)
-        for k in ("bbox", "center"):
+        for k in ("bbox", "center", "window"):
             if isinstance(d.get(k), list):
                 d[k] = tuple(d[k])
         if isinstance(d.get("dem"), str):

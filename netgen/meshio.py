@@ -1,6 +1,6 @@
-"""Mesh files of the world: Wavefront OBJ, one file per layer and tile.
+"""Mesh files of the world: Wavefront OBJ, one file per layer and tile, and binary glTF (GLB).
 
-Each file holds many pieces (a lane, a junction, a building) as OBJ groups (``g`` lines)
+Each OBJ file holds many pieces (a lane, a junction, a building) as OBJ groups (``g`` lines)
 named by their ids (``edge/-117164342#1``, ``junction/314765499``, ``way/4227351``), so every
 face traces back to SUMO and OSM in any tool that opens OBJ. PyBullet loads these files as
 static concave collision meshes (tinyobjloader), and trimesh, Blender or MeshLab read them
@@ -8,44 +8,192 @@ as they are. Vertices are in world metres, z up, written with millimetre precisi
 
 A chunk (1000 m) is split into tiles (250 m by default) so that the physics world streams
 small, merged meshes: a piece belongs to the tile that holds its centroid.
+
+Speed: a world is tens of MB of mesh text, so the text is made by numpy, not by Python's
+string formatting: numbers become rows of ASCII digits in a fixed-width byte matrix whose
+padding is masked out (:func:`_ascii_lines`); the result is the same text as
+``"v %.3f %.3f %.3f"`` / ``"f %d %d %d"`` (except that a coordinate which rounds to zero is
+written ``0.000``, never ``-0.000``). GLB files (one named node per building or area, for
+viewers) are assembled the same way, straight from vertex and face arrays
+(:func:`glb_bytes`), instead of through thousands of trimesh objects.
+
+Files inside a world being built are written with :func:`write_file`: a temporary name and a
+rename, so a killed build never leaves a half-written file under its final name, but no
+fsync per file (the world folder is itself renamed into place only when complete).
 """
 from __future__ import annotations
 
-import io
+import json
+import os
+import struct
 from pathlib import Path
 
 import numpy as np
 
-from ._atomic import atomic_path
+from ._atomic import _disk_error
 
 
-def _lines(fmt: str, arr: np.ndarray) -> str:
-    """All rows of `arr` formatted with `fmt` (one line each) in one C-level % operation."""
-    if len(arr) == 0:
-        return ""
-    return (fmt * len(arr)) % tuple(arr.ravel().tolist())
+# ---------------------------------------------------------------------------------------
+# vectorised text
+# ---------------------------------------------------------------------------------------
+#: "000" .. "999" as ASCII: numbers are written three digits at a time, one table per digit
+_TRIPLES = [np.array([ord(f"{i:03d}"[d]) for i in range(1000)], dtype=np.uint8) for d in range(3)]
+
+
+def _ascii_lines(prefix: bytes, values: np.ndarray, decimals: int) -> tuple[bytes, np.ndarray]:
+    """Lines ``prefix v0 v1 ...\n`` for the rows of `values` (n, k), numbers written like
+    ``%.3f`` (decimals=3) or ``%d`` (decimals=0).
+
+    Returns the text and the (n + 1,) byte offsets of the line starts (and the end). The
+    lines are laid out as a fixed-width byte matrix, built column by column (transposed, so
+    every write is contiguous): sign, integer digits in groups of three, decimals; a mask
+    then drops the unused sign and leading zeros."""
+    if decimals not in (0, 3):
+        raise ValueError("decimals must be 0 or 3")
+    values = np.asarray(values)
+    n, k = values.shape
+    if n == 0:
+        return b"", np.zeros(1, dtype=np.int64)
+    if decimals:
+        m = np.rint(np.asarray(values, dtype=float) * 1000.0).astype(np.int64)
+    else:
+        m = values.astype(np.int64)
+    neg = (m < 0).T                                  # transposed from here on: row j = column j
+    ip = np.abs(m).T
+    if ip.max() < 2 ** 31:
+        ip = ip.astype(np.int32)                     # faster digit arithmetic
+    else:
+        ip = np.ascontiguousarray(ip)
+    if decimals:
+        ip, fp = np.divmod(ip, 1000)
+    nd = np.ones(ip.shape, dtype=np.int32)           # integer digits
+    p = 10
+    while p < 10 ** 18:
+        more = ip >= p
+        if not more.any():
+            break
+        nd += more
+        p *= 10
+    ng = -(-int(nd.max()) // 3)                      # groups of three digits
+    signed = neg.any(axis=1)                         # columns that need a sign position
+    width = len(prefix) + int(signed.sum()) + k * (3 * ng + (4 if decimals else 0)) + (k - 1) + 1
+    # bytes per line: the full width less the unused sign positions and leading zeros
+    lengths = np.full(n, width, dtype=np.int64)
+    for j in range(k):
+        lengths -= 3 * ng - nd[j]
+        if signed[j]:
+            lengths -= ~neg[j]
+    C = np.empty((width, n), dtype=np.uint8)         # transposed: C[c] is text column c
+    K = np.ones((width, n), dtype=bool)
+    for c, byte in enumerate(prefix):
+        C[c] = byte
+    pos = len(prefix)
+    for j in range(k):
+        if j:
+            C[pos] = 32                              # " "
+            pos += 1
+        if signed[j]:
+            C[pos] = 45                              # "-", kept for negative numbers only
+            K[pos] = neg[j]
+            pos += 1
+        q = ip[j]
+        for g in range(ng - 1, -1, -1):
+            r = q % 1000
+            for d in range(3):
+                C[pos + 3 * g + d] = _TRIPLES[d][r]
+            q = q // 1000
+        for d in range(3 * ng - 1):                  # leading zeros (the last digit always stays)
+            K[pos + d] = nd[j] >= 3 * ng - d
+        pos += 3 * ng
+        if decimals:
+            C[pos] = 46                              # "."
+            for d in range(3):
+                C[pos + 1 + d] = _TRIPLES[d][fp[j]]
+            pos += 4
+    C[pos] = 10                                      # newline
+    C, K = C.T, K.T
+    offsets = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(lengths, out=offsets[1:])
+    return C[K].tobytes(), offsets
+
+
+def obj_bytes(vertices: np.ndarray, faces: np.ndarray, groups=None, mtl: str | None = None,
+              material: str | None = None) -> bytes:
+    """One OBJ as bytes. `groups` is a list of (name, face_start, face_end) over `faces`."""
+    parts = [b"# cosim world mesh: world metres, z up\n"]
+    if mtl:
+        parts.append(f"mtllib {mtl}\n".encode())
+    if material:
+        parts.append(f"usemtl {material}\n".encode())
+    parts.append(_ascii_lines(b"v ", np.asarray(vertices, dtype=float).reshape(-1, 3), 3)[0])
+    ftext, foff = _ascii_lines(b"f ", np.asarray(faces, dtype=np.int64).reshape(-1, 3) + 1, 0)
+    if not groups:
+        parts.append(ftext)
+    else:
+        for name, a, b in groups:
+            if b > a:
+                parts.append(f"g {name}\n".encode())
+                parts.append(ftext[foff[a]:foff[b]])
+    return b"".join(parts)
 
 
 def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, groups=None, mtl: str | None = None,
               material: str | None = None) -> None:
     """Write one OBJ. `groups` is a list of (name, face_start, face_end) over `faces`."""
-    parts = ["# cosim world mesh: world metres, z up\n"]
-    if mtl:
-        parts.append(f"mtllib {mtl}\n")
-    if material:
-        parts.append(f"usemtl {material}\n")
-    parts.append(_lines("v %.3f %.3f %.3f\n", np.round(np.asarray(vertices, dtype=float), 3)))
-    f1 = np.asarray(faces, dtype=np.int64) + 1
-    if not groups:
-        parts.append(_lines("f %d %d %d\n", f1))
-    else:
-        flines = _lines("f %d %d %d\n", f1).splitlines(keepends=True)
-        for name, a, b in groups:
-            if b > a:
-                parts.append(f"g {name}\n")
-                parts.append("".join(flines[a:b]))
-    with atomic_path(path) as tmp:
-        Path(tmp).write_text("".join(parts))
+    write_file(path, obj_bytes(vertices, faces, groups, mtl, material))
+
+
+class ObjBatch:
+    """Many OBJ files (a world's tiles) made together: the numbers of all of them are turned
+    into text in two numpy passes (vertices, faces), then each file is cut out of that text,
+    so hundreds of small files cost no more than one big one. The text is the same as
+    :func:`obj_bytes` gives file by file."""
+
+    def __init__(self):
+        self.files = []
+
+    def add(self, path: Path, vertices: np.ndarray, faces: np.ndarray, groups=None) -> None:
+        self.files.append((Path(path), np.asarray(vertices, dtype=float).reshape(-1, 3),
+                           np.asarray(faces, dtype=np.int64).reshape(-1, 3), groups))
+
+    def write(self) -> None:
+        if not self.files:
+            return
+        vtext, voff = _ascii_lines(b"v ", np.vstack([v for _, v, _, _ in self.files]), 3)
+        ftext, foff = _ascii_lines(b"f ", np.vstack([f + 1 for _, _, f, _ in self.files]), 0)
+        v0 = f0 = 0
+        for path, v, f, groups in self.files:
+            parts = [b"# cosim world mesh: world metres, z up\n", vtext[voff[v0]:voff[v0 + len(v)]]]
+            if not groups:
+                parts.append(ftext[foff[f0]:foff[f0 + len(f)]])
+            else:
+                for name, a, b in groups:
+                    if b > a:
+                        parts.append(f"g {name}\n".encode())
+                        parts.append(ftext[foff[f0 + a]:foff[f0 + b]])
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_file(path, b"".join(parts))
+            v0 += len(v)
+            f0 += len(f)
+        self.files = []
+
+
+def write_file(path: Path, data: bytes) -> None:
+    """Write `data` under a temporary name and rename it into place (no fsync; see above).
+
+    An OS error (disk full, permission) is a one-line BuildError."""
+    path = Path(path)
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except OSError as e:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise _disk_error(path, e) from None
 
 
 def read_obj_groups(path: Path) -> dict:
@@ -61,6 +209,78 @@ def read_obj_groups(path: Path) -> dict:
     return out
 
 
+# ---------------------------------------------------------------------------------------
+# binary glTF
+# ---------------------------------------------------------------------------------------
+def glb_bytes(names, vertices: np.ndarray, faces: np.ndarray, vstart, fstart, material_of,
+              materials: list[dict]) -> bytes:
+    """A GLB scene with one node (and mesh) per piece, named by `names`.
+
+    Piece k owns ``vertices[vstart[k]:vstart[k+1]]`` and ``faces[fstart[k]:fstart[k+1]]``
+    (face indices global, i.e. into `vertices`); ``material_of[k]`` indexes `materials`,
+    dicts ``{"name", "rgba" (0-255), "roughness", "metallic"}``. Pieces without faces are
+    left out. Positions are float32 and indices uint32, as in any glTF viewer's input."""
+    vstart = np.asarray(vstart, dtype=np.int64)
+    fstart = np.asarray(fstart, dtype=np.int64)
+    V = np.asarray(vertices, dtype=np.float32).reshape(-1, 3)
+    F = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    n = len(names)
+    nf = fstart[1:] - fstart[:-1]
+    nv = vstart[1:] - vstart[:-1]
+    keep = np.flatnonzero((nf > 0) & (nv > 0))
+    # indices local to each piece, uint32; all indices first, then all positions
+    local = (F - np.repeat(vstart[:-1], nf)[:, None]).astype(np.uint32)
+    ibytes = local.tobytes()
+    pbytes = V.tobytes()
+    ilen = len(ibytes)
+    pad = (-ilen) % 4
+    blob = ibytes + b"\0" * pad + pbytes
+    blob += b"\0" * ((-len(blob)) % 4)
+    if len(keep):     # per-piece bounds: reduce over [start, end) pairs, every other result
+        Vp = np.vstack([V, V[:1]])
+        idx = np.column_stack([vstart[keep], vstart[keep + 1]]).ravel()
+        vmin = np.minimum.reduceat(Vp, idx, axis=0)[::2]
+        vmax = np.maximum.reduceat(Vp, idx, axis=0)[::2]
+    used = sorted({int(material_of[k]) for k in keep})
+    mat_index = {m: i for i, m in enumerate(used)}
+    accessors, meshes, nodes = [], [], []
+    for r, k in enumerate(keep.tolist()):
+        accessors.append({"bufferView": 0, "byteOffset": int(fstart[k]) * 12, "componentType": 5125,
+                          "count": int(nf[k]) * 3, "type": "SCALAR"})
+        accessors.append({"bufferView": 1, "byteOffset": int(vstart[k]) * 12, "componentType": 5126,
+                          "count": int(nv[k]), "type": "VEC3",
+                          "min": vmin[r].tolist(), "max": vmax[r].tolist()})
+        meshes.append({"name": names[k], "primitives": [{
+            "attributes": {"POSITION": 2 * r + 1}, "indices": 2 * r, "mode": 4,
+            "material": mat_index[int(material_of[k])]}]})
+        nodes.append({"name": names[k], "mesh": r})
+    mats = []
+    for m in used:
+        d = materials[m]
+        mats.append({"name": d["name"], "doubleSided": False, "pbrMetallicRoughness": {
+            "baseColorFactor": [c / 255.0 for c in d["rgba"]],
+            "metallicFactor": d.get("metallic", 0.0), "roughnessFactor": d.get("roughness", 1.0)}})
+    gltf = {"asset": {"version": "2.0", "generator": "cosim netgen"}, "scene": 0,
+            "scenes": [{"nodes": list(range(len(nodes)))}], "nodes": nodes, "meshes": meshes,
+            "accessors": accessors, "materials": mats,
+            "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": ilen, "target": 34963},
+                            {"buffer": 0, "byteOffset": ilen + pad, "byteLength": len(pbytes),
+                             "target": 34962, "byteStride": 12}],
+            "buffers": [{"byteLength": len(blob)}]}
+    if not nodes:
+        gltf = {k: v for k, v in gltf.items() if k not in ("bufferViews", "buffers", "accessors")}
+        blob = b""
+    js = json.dumps(gltf, separators=(",", ":")).encode()
+    js += b" " * ((-len(js)) % 4)
+    chunks = struct.pack("<II", len(js), 0x4E4F534A) + js
+    if blob:
+        chunks += struct.pack("<II", len(blob), 0x004E4942) + blob
+    return struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks
+
+
+# ---------------------------------------------------------------------------------------
+# tiles
+# ---------------------------------------------------------------------------------------
 def tile_index(xy: np.ndarray, bounds, tile: float) -> np.ndarray:
     """(n,) tile numbers a*nt+b for points inside chunk bounds (clamped at the border)."""
     xmin, ymin, xmax, ymax = bounds

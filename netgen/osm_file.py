@@ -1,8 +1,11 @@
 """Local OSM files: .osm, .osm.pbf, .osm.gz, .osm.bz2 (read with pyosmium).
 
 netconvert reads OSM XML only, so other encodings are converted once with pyosmium (fast, in
-C++) into the cache, keyed by the file's content hash. Every file is checked first: an empty,
-corrupt or truncated file, or one with no ways at all, is a one-line DataError.
+C++) into the cache, keyed by the file's content hash. The conversion is also the check: an
+empty, corrupt or truncated file, or one with no ways at all, is a one-line DataError. It is
+one pass over the file, counting ways and relations on the way (a Python callback per node
+would cost more than the whole conversion; nodes are counted only to word the "no map data"
+error).
 """
 from __future__ import annotations
 
@@ -33,17 +36,21 @@ def _suffix_ok(path: Path) -> bool:
     return any(name.endswith(s) for s in SUFFIXES)
 
 
-def scan(path: Path) -> dict:
-    """Read the whole file once with pyosmium; return counts and the data bbox.
-
-    Raises DataError for a missing, empty, corrupt or truncated file."""
-    path = Path(path)
+def _check_readable(path: Path) -> None:
     if not path.exists():
         raise DataError(f"OSM file not found: {path}")
     if not _suffix_ok(path):
         raise DataError(f"OSM file {path.name}: unknown format (use .osm, .osm.pbf, .osm.gz or .osm.bz2)")
     if path.stat().st_size == 0:
         raise DataError(f"OSM file {path.name} is empty")
+
+
+def scan(path: Path) -> dict:
+    """Read the whole file once with pyosmium; return counts and the data bbox.
+
+    Raises DataError for a missing, empty, corrupt or truncated file."""
+    path = Path(path)
+    _check_readable(path)
 
     class Counter(osmium.SimpleHandler):
         def __init__(self):
@@ -96,39 +103,58 @@ def header_bbox(path: Path):
     return (box.bottom_left.lat, box.bottom_left.lon, box.top_right.lat, box.top_right.lon)
 
 
+class _WayCounter(osmium.SimpleHandler):
+    """Counts ways, highway ways and relations (no node callback: see the module docstring)."""
+
+    def __init__(self):
+        super().__init__()
+        self.ways = self.highways = self.relations = 0
+
+    def way(self, w):
+        self.ways += 1
+        if "highway" in w.tags:
+            self.highways += 1
+
+    def relation(self, r):
+        self.relations += 1
+
+
 def to_osm_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
-    """Check `path` and return (OSM XML file netconvert can read, scan info).
+    """Check `path` and return (OSM XML file netconvert can read, info with the sha256).
 
     Every input is rewritten once into the cache as OSM XML sorted by type and id (pyosmium's
     MergeInputReader sorts): netconvert reads only XML, and pyosmium's area assembly needs
     sorted input (extracts edited in JOSM carry negative ids out of order)."""
+    import json
+
+    from ._atomic import write_text
+
     path = Path(path).resolve()
+    _check_readable(path)
     digest = file_hash(path)
-    info_cached = None
     out = Path(cache_dir) / "osm" / f"{digest[:24]}.osm"
     marker = Path(cache_dir) / "osm" / f"{digest[:24]}.scan"
     if marker.exists() and out.exists():
-        import json
         try:
-            info_cached = json.loads(marker.read_text())
+            return out, json.loads(marker.read_text())
         except ValueError:
-            info_cached = None
-    if info_cached is not None:
-        info_cached["bbox"] = tuple(info_cached["bbox"])
-        return out, info_cached
-    info = scan(path)
+            pass
+    counter = _WayCounter()
     with atomic_path(out) as tmp:
         w = osmium.SimpleWriter(osmium.io.File(str(tmp), "osm"), overwrite=True)
         try:
             r = osmium.MergeInputReader()
             r.add_file(str(path))
-            r.apply(w)
-        except RuntimeError as e:
-            raise DataError(f"OSM file {path.name} cannot be read ({' '.join(str(e).split())[:150]})") from None
+            r.apply(w, counter)
+        except Exception as e:    # libosmium: a parse error, a truncated block (RuntimeError subclasses)
+            msg = " ".join(str(e).split())[:200]
+            raise DataError(f"OSM file {path.name} is corrupt or truncated ({msg})") from None
         finally:
             w.close()
-    import json
-    from ._atomic import write_text
-    write_text(marker, json.dumps({**info, "sha256": digest}))
-    info["sha256"] = digest
+        if counter.ways == 0:
+            nodes = scan(path)["nodes"]      # only to word the error
+            raise DataError(f"OSM file {path.name} has no map data ({nodes} nodes, 0 ways)")
+    info = {"ways": counter.ways, "relations": counter.relations, "highway_ways": counter.highways,
+            "sha256": digest}
+    write_text(marker, json.dumps(info))
     return out, info

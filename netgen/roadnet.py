@@ -1,18 +1,44 @@
 """A light, fast read of a SUMO ``.net.xml`` for meshing and analysis.
 
 ``sumolib.net.readNet`` builds a full object graph and takes seconds on a city network; the
-world builder needs only shapes, widths, permissions and ids, so it reads the same XML with
-the standard library's streaming parser (``xml.etree.ElementTree.iterparse``), keeps shapes as
-numpy arrays, and uses sumolib's own vehicle-class rules for allow/disallow.
+world builder needs only shapes, widths, permissions and ids, so it reads the same XML with a
+streaming parser (lxml's ``iterparse``, in C, with a tag filter; the standard library's
+ElementTree where lxml is missing), keeps shapes as numpy arrays, and uses sumolib's own
+vehicle-class rules for allow/disallow.
+
+Speed (a city network is ~10 MB of XML, read while the rest of the build waits):
+
+* only ``edge``, ``junction``, ``tlLogic`` and ``location`` elements are handled, and parsing
+  stops at the first ``connection`` (netconvert writes connections, roundabouts and nothing
+  else the builder needs after the junctions);
+* all shapes (``"x,y x,y ..."``) are collected as strings and parsed in one numpy call;
+* permissions are resolved once per distinct (allow, disallow) pair;
+* :func:`read_net_while_written` reads netconvert's output while netconvert is still writing
+  it (writing a city network takes netconvert a quarter of its run, and what the builder
+  needs is in the first three quarters of the file).
 """
 from __future__ import annotations
 
-import xml.etree.ElementTree as ET
+import time
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 from sumolib.net.lane import get_allowed
+
+try:
+    from lxml import etree as _etree
+    _LXML = True
+
+    def _children(el, tag):
+        return el.iterchildren(tag)
+except ImportError:  # pragma: no cover - lxml is a dependency; ElementTree is the fallback
+    import xml.etree.ElementTree as _etree
+    _LXML = False
+
+    def _children(el, tag):
+        return el.iterfind(tag)
 
 CAR_CLASSES = {"passenger", "private", "taxi", "bus", "truck", "delivery", "emergency", "evehicle"}
 
@@ -97,55 +123,133 @@ class RoadNet:
         }
 
 
-def read_net(path: str | Path) -> RoadNet:
+@lru_cache(maxsize=None)
+def _allowed(allow: str | None, disallow: str | None) -> frozenset:
+    return frozenset(get_allowed(allow, disallow))
+
+
+def _parse_shapes(strings: list) -> list:
+    """Many SUMO shape strings ("x,y x,y ...", may be empty) -> list of (n, 2) arrays."""
+    counts = np.array([s.count(" ") + 1 if s else 0 for s in strings], dtype=np.int64)
+    text = " ".join(s for s in strings if s).replace(",", " ")
+    flat = np.array(text.split(), dtype=float) if text else np.zeros(0)
+    if len(flat) != 2 * counts.sum():   # an odd shape (3D points, stray spaces): one by one
+        return [parse_shape(s) for s in strings]
+    pts = flat.reshape(-1, 2)
+    ends = np.cumsum(counts).tolist()
+    return [pts[a:b] for a, b in zip([0] + ends[:-1], ends)]
+
+
+class _GrowingFile:
+    """A file another process is still writing: read() waits for more bytes until that
+    process has exited (then the rest, then end of file)."""
+
+    def __init__(self, path: Path, proc, poll_s: float = 0.005):
+        self.path, self.proc, self.poll_s = Path(path), proc, poll_s
+        self.f = None
+        self.writer_done = False
+
+    def read(self, n: int = -1) -> bytes:
+        n = n if n and n > 0 else 1 << 16
+        while True:
+            if self.f is None:
+                if self.path.exists():
+                    self.f = open(self.path, "rb")
+                elif self.proc.poll() is not None:
+                    return b""
+                else:
+                    time.sleep(self.poll_s)
+                    continue
+            data = self.f.read(n)
+            if data or self.writer_done:
+                return data
+            if self.proc.poll() is not None:
+                self.writer_done = True     # read what is left once more, then end of file
+            else:
+                time.sleep(self.poll_s)
+
+    def close(self) -> None:
+        if self.f is not None:
+            self.f.close()
+
+
+def read_net_while_written(path: str | Path, proc, internal: bool = True) -> RoadNet:
+    """:func:`read_net` of the file that the running process `proc` (netconvert) is writing.
+
+    Returns as soon as the parts the builder reads are in (the first ``connection``), which
+    is usually before netconvert has exited: the caller must still check that it succeeded
+    (a parse error here, e.g. netconvert failed before or while writing, comes up as the
+    parser's exception)."""
+    f = _GrowingFile(path, proc)
+    try:
+        return _read(f, internal)
+    finally:
+        f.close()
+
+
+def read_net(path: str | Path, internal: bool = True) -> RoadNet:
+    """The network in `path`; ``internal=False`` leaves out internal edges and junctions (the
+    connections inside junctions, which the world builder does not mesh)."""
+    with open(path, "rb") as f:
+        return _read(f, internal)
+
+
+def _read(f, internal: bool) -> RoadNet:
     edges: dict = {}
     junctions: dict = {}
     tls: list = []
     location: dict = {}
-    cur_edge: Edge | None = None
-    cur_lane_el = None
-    lane_params: dict = {}
-    for ev, el in ET.iterparse(str(path), events=("start", "end")):
+    shape_str: list = []        # every shape string, parsed at the end in one go
+    shape_dst: list = []        # (object, attribute) that gets each parsed shape
+    wanted = ("edge", "junction", "tlLogic", "location", "connection")
+    it = _etree.iterparse(f, events=("end",), tag=wanted) if _LXML else _etree.iterparse(f, events=("end",))
+    for _, el in it:
         tag = el.tag
-        if ev == "start":
-            if tag == "edge":
-                a = el.attrib
-                cur_edge = Edge(id=a["id"], function=a.get("function", "normal"),
-                                from_node=a.get("from"), to_node=a.get("to"), name=a.get("name", ""),
-                                type=a.get("type", ""), orig_ids=(),
-                                raw_shape=parse_shape(a.get("shape")) if "shape" in a else None)
-            elif tag == "lane":
-                cur_lane_el = el
-                lane_params = {}
-            continue
-        # end events
-        if tag == "param" and cur_lane_el is not None:
-            lane_params[el.attrib.get("key")] = el.attrib.get("value")
-        elif tag == "lane" and cur_edge is not None:
-            a = el.attrib
-            allowed = frozenset(get_allowed(a.get("allow"), a.get("disallow")))
-            cur_edge.lanes.append(Lane(id=a["id"], index=int(a.get("index", 0)),
-                                       width=float(a.get("width", 3.2)), speed=float(a.get("speed", 13.89)),
-                                       length=float(a.get("length", 0.0)), allowed=allowed,
-                                       shape=parse_shape(a.get("shape"))))
-            if "origId" in lane_params and not cur_edge.orig_ids:
-                cur_edge.orig_ids = tuple(lane_params["origId"].split())
-            cur_lane_el = None
-        elif tag == "edge" and cur_edge is not None:
-            edges[cur_edge.id] = cur_edge
-            cur_edge = None
-            el.clear()
+        if tag == "edge":
+            get = el.get
+            if not internal and get("function") == "internal":
+                el.clear()
+                continue
+            e = Edge(id=get("id"), function=get("function", "normal"), from_node=get("from"),
+                     to_node=get("to"), name=get("name", ""), type=get("type", ""), orig_ids=())
+            shape = get("shape")
+            if shape is not None:
+                shape_str.append(shape)
+                shape_dst.append((e, "raw_shape"))
+            for ln in _children(el, "lane"):
+                get = ln.get
+                lane = Lane(id=get("id"), index=int(get("index", 0)), width=float(get("width", 3.2)),
+                            speed=float(get("speed", 13.89)), length=float(get("length", 0.0)),
+                            allowed=_allowed(get("allow"), get("disallow")), shape=None)
+                shape_str.append(get("shape") or "")
+                shape_dst.append((lane, "shape"))
+                e.lanes.append(lane)
+                if not e.orig_ids:
+                    for prm in _children(ln, "param"):
+                        if prm.get("key") == "origId":
+                            e.orig_ids = tuple(prm.get("value", "").split())
+                            break
+            edges[e.id] = e
         elif tag == "junction":
-            a = el.attrib
-            junctions[a["id"]] = Junction(id=a["id"], type=a.get("type", ""), x=float(a.get("x", 0)),
-                                          y=float(a.get("y", 0)), shape=parse_shape(a.get("shape")))
-            el.clear()
+            get = el.get
+            if not internal and get("type") == "internal":
+                el.clear()
+                continue
+            j = Junction(id=get("id"), type=get("type", ""), x=float(get("x", 0)),
+                         y=float(get("y", 0)), shape=None)
+            shape_str.append(get("shape") or "")
+            shape_dst.append((j, "shape"))
+            junctions[j.id] = j
         elif tag == "tlLogic":
-            if el.attrib["id"] not in tls:
-                tls.append(el.attrib["id"])
-            el.clear()
+            if el.get("id") not in tls:
+                tls.append(el.get("id"))
         elif tag == "location":
             location = dict(el.attrib)
-        elif tag in ("connection", "request", "roundabout"):
-            el.clear()
+        elif tag == "connection":
+            break                   # nothing the builder reads comes after the junctions
+        else:
+            continue                # ElementTree: every element comes through; keep children
+        el.clear()
+    for (obj, attr), shp in zip(shape_dst, _parse_shapes(shape_str)):
+        setattr(obj, attr, shp)
     return RoadNet(edges=edges, junctions=junctions, tls_ids=tls, location=location)

@@ -11,6 +11,9 @@ crossing corners take the height of the nearest lane point. Strips are resampled
 Everything is computed on concatenated arrays of all lanes at once (a city has ~10^4 lanes;
 per-lane Python would dominate the build).
 
+The carriageway (where vehicles drive: vehicle lanes and junctions) is given as overlapping
+polygons, :func:`carriageway_parts`, made on demand from the network alone.
+
 Mesh classes: ``asphalt`` (vehicle lanes, junctions, crossings), ``sidewalk`` (pedestrian-only
 lanes and walking areas, 2 cm higher), ``rail`` (train-only tracks) and ``marking`` (lane lines and zebra stripes, visual
 only, 1.5 cm above the asphalt). Each piece keeps its SUMO id and the OSM way ids.
@@ -18,6 +21,8 @@ only, 1.5 cm above the asphalt). Each piece keeps its SUMO id and the OSM way id
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
+from operator import attrgetter
 
 import mapbox_earcut
 import numpy as np
@@ -30,6 +35,7 @@ MARK_W = 0.12
 DASH_ON, DASH_OFF = 3.0, 6.0
 #: lanes only trains use are ballast, not asphalt (trams share the street and stay asphalt)
 RAIL_CLASSES = frozenset({"rail", "rail_urban", "rail_electric", "rail_fast", "cable_car", "subway"})
+_LANE_INDEX = attrgetter("index")
 
 
 @dataclass
@@ -50,17 +56,20 @@ class RoadGeometry:
     parts: dict = field(default_factory=dict)      # kind -> list[MeshPart]
     support_pts: np.ndarray = None                 # (n, 3) road surface points for levelling
     support_hw: np.ndarray = None                  # (n,) ground-is-road radius at each point
-    carriageway_parts: list = field(default_factory=list)
     stats: dict = field(default_factory=dict)
-    _carriageway: object = None
+    net: object = None
 
-    @property
+    @cached_property
+    def carriageway_parts(self) -> list:
+        """Where vehicles drive, as overlapping polygons (see :func:`carriageway_parts`)."""
+        return carriageway_parts(self.net)
+
+    @cached_property
     def carriageway(self):
-        """Where vehicles drive (union of vehicle lanes and junctions), computed on first use."""
-        if self._carriageway is None:
-            parts = [p for p in self.carriageway_parts if p is not None and not p.is_empty]
-            self._carriageway = shapely.union_all(parts) if parts else shapely.GeometryCollection()
-        return self._carriageway
+        """The union of :attr:`carriageway_parts` (about a second on a city: the build's
+        scenery uses the parts themselves, :class:`netgen.scenery.PolygonSet`)."""
+        parts = [p for p in self.carriageway_parts if p is not None and not p.is_empty]
+        return shapely.union_all(parts) if parts else shapely.GeometryCollection()
 
 
 # ---------------------------------------------------------------------------------------
@@ -168,22 +177,61 @@ def _part(kind, v, f, fg, n_groups, ids, elements, osm, centroids):
 
 
 # ---------------------------------------------------------------------------------------
-def build_roads(net, ground, step: float = 2.5) -> RoadGeometry:
-    """Meshes for every SUMO edge, junction, walking area and crossing of `net`.
-
-    `ground(x, y)` is the natural terrain height (vectorised)."""
-    geo = RoadGeometry()
+def _road_lanes(net):
+    """Normal edges with lanes; their lanes (>= 2 shape points) in index order, the edge of
+    each lane, and per edge (edge number, shape of its middle lane)."""
     edges = [e for e in net.edges.values() if e.function == "normal" and e.lanes]
     lanes, lane_edge, refs = [], [], []
     for ei, e in enumerate(edges):
-        ls = sorted((l for l in e.lanes if len(l.shape) >= 2), key=lambda l: l.index)
+        ls = [l for l in e.lanes if len(l.shape) >= 2]
         if not ls:
             continue
+        if len(ls) > 1:
+            ls.sort(key=_LANE_INDEX)
         refs.append((ei, ls[len(ls) // 2].shape))
         for l in ls:
             lanes.append(l)
             lane_edge.append(ei)
-    lane_edge = np.array(lane_edge, dtype=np.int64)
+    return edges, lanes, np.array(lane_edge, dtype=np.int64), refs
+
+
+def _open_ring(shape):
+    """A polygon shape without its closing point, or None with fewer than 3 points left."""
+    ring = shape
+    if ring[0, 0] == ring[-1, 0] and ring[0, 1] == ring[-1, 1]:
+        ring = ring[:-1]
+    return ring if len(ring) >= 3 else None
+
+
+def carriageway_parts(net) -> list:
+    """Where vehicles drive: each vehicle lane's strip (its SUMO shape buffered by half its
+    width, flat ends) and each junction polygon (repaired where invalid). They overlap; the
+    union is not formed (scenery tests points against the parts)."""
+    _, lanes, _, _ = _road_lanes(net)
+    drive = [l for l in lanes if l.drivable]
+    out = []
+    if drive:
+        DP, dg = _concat([l.shape for l in drive])
+        lines = shapely.linestrings(DP, indices=dg)
+        width = np.array([l.width for l in drive])
+        out += list(shapely.buffer(lines, width / 2.0, cap_style="flat", join_style="mitre"))
+    rings = [r for r in (_open_ring(j.shape) for j in net.junctions.values()
+                         if j.type != "internal" and len(j.shape) >= 3) if r is not None]
+    if rings:
+        JP, jg = _concat([np.vstack([r, r[:1]]) for r in rings])
+        jp = shapely.polygons(shapely.linearrings(JP, indices=jg))
+        bad = ~shapely.is_valid(jp)
+        jp[bad] = shapely.make_valid(jp[bad])
+        out += list(jp)
+    return out
+
+
+def build_roads(net, ground, step: float = 2.5) -> RoadGeometry:
+    """Meshes for every SUMO edge, junction, walking area and crossing of `net`.
+
+    `ground(x, y)` is the natural terrain height (vectorised)."""
+    geo = RoadGeometry(net=net)
+    edges, lanes, lane_edge, refs = _road_lanes(net)
 
     # 1. height profile per edge along its middle lane
     ref_e = np.array([r[0] for r in refs], dtype=np.int64)
@@ -252,10 +300,8 @@ def build_roads(net, ground, step: float = 2.5) -> RoadGeometry:
         sel = [k for k in range(len(polys)) if pkind[k] == kind]
         vs, fs, fg, off, keep = [], [], [], 0, []
         for k in sel:
-            ring = polys[k]
-            if ring[0, 0] == ring[-1, 0] and ring[0, 1] == ring[-1, 1]:
-                ring = ring[:-1]
-            if len(ring) < 3:
+            ring = _open_ring(polys[k])
+            if ring is None:
                 continue
             tri = mapbox_earcut.triangulate_float64(ring, np.array([len(ring)], dtype=np.uint32))
             if len(tri) == 0:
@@ -274,12 +320,16 @@ def build_roads(net, ground, step: float = 2.5) -> RoadGeometry:
         V = np.column_stack([V2, Z])
         F = np.vstack(fs)
         FG = np.concatenate(fg)
-        cen = np.array([polys[k][:, :2].mean(axis=0) for k in keep])
+        PP, pg = _concat([polys[k][:, :2] for k in keep])     # as given (closing point too)
+        cnt = np.bincount(pg, minlength=len(keep))
+        cen = np.column_stack([np.bincount(pg, PP[:, 0], len(keep)), np.bincount(pg, PP[:, 1], len(keep))])
+        cen /= cnt[:, None]
         parts[kind].append(_part(kind, V, F, FG, len(keep), [pid[k] for k in keep],
                                  [pel[k] for k in keep], [()] * len(keep), cen))
         if kind == "asphalt":
             # junction interiors as levelling support: centroid with the polygon's reach
-            radius = np.array([np.max(np.hypot(*(polys[k][:, :2] - polys[k][:, :2].mean(0)).T)) for k in keep])
+            radius = np.zeros(len(keep))
+            np.maximum.at(radius, pg, np.hypot(*(PP - cen[pg]).T))
             sup.append(np.column_stack([cen, zfun(cen)]))
             sup_hw.append(radius)
             sup.append(V)
@@ -307,23 +357,6 @@ def build_roads(net, ground, step: float = 2.5) -> RoadGeometry:
     geo.parts = {k: v for k, v in parts.items() if v}
     geo.support_pts = np.vstack(sup)
     geo.support_hw = np.concatenate(sup_hw)
-    # carriageway: where vehicles drive (lanes for cars + junction polygons)
-    dl = np.nonzero(drive)[0]
-    if len(dl):
-        DP, dg = _concat([lanes[k].shape for k in dl])
-        lines = shapely.linestrings(DP, indices=dg)
-    else:
-        lines = []
-    bufs = list(shapely.buffer(lines, width[dl] / 2.0, cap_style="flat", join_style="mitre")) if len(dl) else []
-    if jpolys:
-        JP, jg = _concat([np.vstack([r, r[:1]]) for r in jpolys])
-        jp = shapely.polygons(shapely.linearrings(JP, indices=jg))
-    else:
-        jp = np.array([])
-    if len(jp):
-        bad = ~shapely.is_valid(jp)
-        jp[bad] = shapely.make_valid(jp[bad])
-    geo.carriageway_parts = list(bufs) + list(jp)
     geo.stats = {"lanes_meshed": len(lanes), "junctions_meshed": len(jpolys),
                  "walkingareas_meshed": sum(1 for e in pel if e == "walkingarea"),
                  "crossings_meshed": len(crossings),
