@@ -502,14 +502,15 @@ class _Netconvert:
 # the scenery stream
 # ---------------------------------------------------------------------------------------
 def _parallel() -> bool:
-    """A second process helps when there is a second core and processes can be forked."""
+    """More processes help when there is a second core and processes can be forked (and
+    this is not a daemonic multiprocessing worker, which may not have children)."""
     import multiprocessing as mp
 
     try:
         ncpu = len(os.sched_getaffinity(0))
     except AttributeError:          # not Linux
         ncpu = os.cpu_count() or 1
-    return ncpu >= 2 and "fork" in mp.get_all_start_methods()
+    return ncpu >= 2 and "fork" in mp.get_all_start_methods() and not mp.current_process().daemon
 
 
 def _die_with_parent() -> None:

@@ -103,7 +103,7 @@ def test_cli_run_headless_prints_summary(motorway_world, tmp_path):
 
 def test_start_far_from_roads_is_a_clear_error(motorway_world, tmp_path):
     r = subprocess.run([sys.executable, "-m", "cosim", "run", "--world", str(motorway_world), "--duration", "1",
-                        "--traffic", "none", "--start", "60.5380,26.9320"], capture_output=True, text=True,
+                        "--traffic", "none", "--start", "60.5430,26.9602"], capture_output=True, text=True,
                        timeout=600, cwd=tmp_path)
     assert r.returncode == 2
     assert r.stderr.strip().splitlines()[-1].startswith("error: start is ") and "from the nearest road" in r.stderr
