@@ -419,17 +419,26 @@ class Simulation:
 
     def replan(self):
         """Plan the route again from where the car is (after a SUMO network swap): on the
-        same lane if the new network has it, else the nearest lane in the car's direction."""
+        first lane of its current path, from here on, that the new network has (so the car
+        keeps its lane and direction), else the nearest lane."""
         st = self.vehicle.state()
         k, _, _ = self.path.project(st.x, st.y, self._path_idx)
-        lane = self.path.lane_of[k][0]
         s = self.traffic.sumo
-        try:
-            if lane.startswith(":"):
-                raise ValueError("in a junction")
-            s.lane.getLength(lane)
-            pos = self._lane_pos(lane, st.x, st.y)
-        except Exception:
+        lane, pos = None, 0.0
+        seen = set()
+        for j in range(k, len(self.path.lane_of)):
+            cand = self.path.lane_of[j][0]
+            if cand in seen or cand.startswith(":"):
+                continue
+            seen.add(cand)
+            try:
+                s.lane.getLength(cand)
+            except Exception:
+                continue
+            lane = cand
+            pos = self._lane_pos(cand, st.x, st.y) if j == k else 0.0
+            break
+        if lane is None:
             lane, pos, *_ = self._snap(st.x, st.y, "ego")
         self.goal_xy = None
         self._plan_route(lane, pos)
