@@ -1,110 +1,781 @@
-"""The autopilot: the default driver behind the controller interface.
+"""The autopilot, and the controller interface a user's own driver plugs into.
 
-``control(state, s_here, actors, dt) -> (throttle, brake, steer)``. It follows the lane path
-with pure pursuit, holds the set speed with a PI controller on wheel torque, slows for curves
-ahead, keeps a time gap behind the vehicle ahead on its path, stops for pedestrians on its
-path, and stops at red (and at yellow when it can stop in time) using SUMO's state of the ego's
-next traffic-light link.
+The controller interface
+------------------------
+:class:`cosim.sim.Simulation` calls ``driver.control(state, s_here, actors, dt)`` once per
+SUMO step and applies the returned ``(throttle, brake, steer)`` (pedals 0..1, steering -1..1,
++ = left, as a fraction of full lock) to the physics car's wheels. ``state`` is the car's
+``cosim.vehicle.VehicleState``, ``s_here`` its arc length on the route's lane path
+(``sim.path``), ``actors`` the SUMO actors near it (``cosim.traffic.ActorsSnapshot``).
+
+* :class:`Autopilot` is the default driver (below).
+* :class:`CallbackDriver` wraps a plain function ``fn(obs) -> (throttle, brake, steer)``;
+  ``obs`` is :meth:`Autopilot.observation` (speed, lateral offset, heading error, lidar, next
+  light, lead vehicle, the autopilot's own suggestion, ...).
+* ``cosim.env.DrivingEnv`` is the same thing as a Gymnasium-style ``step(action)``.
+
+The autopilot
+-------------
+Lateral: pure pursuit from the rear axle on the SUMO lane path (``cosim.driving``).
+
+Longitudinal: a target speed, the minimum of
+
+* the set speed (``cfg.speed_mps``) and, when ``cfg.respect_speed_limit``, SUMO's lane
+  speed limit (``lane.getMaxSpeed``), braked for ahead of time;
+* the curve speed (2.5 m/s² lateral) of the path ahead, braked for ahead of time;
+* adaptive cruise behind the nearest obstacle on the path, fused from three sensors: the
+  lidar (``cosim.sensors``: the nearest hit in the path corridor), the mirrored SUMO actors
+  projected onto the path (vehicles and pedestrians, with a short prediction of crossing
+  ones), and SUMO's leader (``vehicle.getLeader("ego")``, accepted when it is on a lane of the
+  path ahead). It keeps ``TIME_GAP_S`` (1.8 s, at least 1.5 s) plus a standstill gap;
+* traffic control at each junction the path enters (``LanePath.stops``, state read live
+  from ``lane.getLinks``): stop at red and at yellow when it can stop in time; at a stop sign
+  (SUMO link state ``s`` or ``w``, or an OpenStreetMap ``highway=stop`` sign from the world's
+  scenery next to a minor approach, since netconvert does not import them) stop at the line
+  for at least ``STOP_SIGN_HOLD_S`` and go when the junction is clear; at minor links (``m``,
+  ``=``, ``g``, blinking ``o``) go only when no vehicle with right of way
+  (``lane.getFoes``) would arrive before the ego has crossed, and nothing is on a conflicting
+  junction lane (``lane.getInternalFoes``);
+* pedestrians: stop before a crossing the path goes over (``LanePath.crossings``) while a
+  person on it is near the path, and for a person in the path corridor;
+* the goal: stop at the snapped goal.
+
+A PI speed controller with a force model (``cosim.driving.SpeedController``) turns the target
+into throttle and brake. It counts, for benchmarks, stops and near misses
+(:class:`DrivingStats`: time-to-collision below ``NEAR_MISS_TTC_S`` or a gap below
+``NEAR_MISS_GAP_M`` while moving).
 """
 from __future__ import annotations
 
+import logging
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from .driving import PurePursuit, SpeedController, curve_speed
+from .driving import PurePursuit, SpeedController, _drivable_lanes, plan_speed, stop_speed
 
-TIME_GAP_S = 1.8          # kept behind a vehicle ahead (>= 1.5 s)
-STANDSTILL_GAP_M = 4.0    # bumper to bumper when stopped
-COMFORT_DECEL = 2.5       # m/s2 used to plan stops
-STOP_LINE_MARGIN_M = 2.0
+log = logging.getLogger("cosim.autopilot")
+
+TIME_GAP_S = 1.8           # kept behind a vehicle ahead (>= 1.5 s)
+STANDSTILL_GAP_M = 4.0     # bumper to bumper when stopped behind a vehicle
+PERSON_GAP_M = 4.0         # stop this far before a pedestrian in the path
+COMFORT_DECEL = 2.0        # m/s2 used to plan stops and slow-downs
+YELLOW_DECEL = 3.5         # m/s2: at yellow, stop only if this deceleration suffices
+STOP_LINE_MARGIN_M = 1.0   # front bumper this far before the stop line
+CROSSING_MARGIN_M = 1.5    # front bumper this far before a crossing's edge
+CROSSING_APPROACH_MPS = 3.0  # speed over a crossing where people wait at its ends
+STOP_SIGN_HOLD_S = 1.2     # full stop at a stop sign at least this long (>= 1 s)
+YIELD_GIVE_UP_S = 40.0     # after waiting this long at a yield, go when nothing is < 2 s away
+NEAR_MISS_TTC_S = 1.5
+NEAR_MISS_GAP_M = 2.0
+SENSE_RANGE_M = 80.0       # obstacles on the path are considered up to here
+OSM_SIGN_RADIUS_M = 20.0   # an OSM stop sign belongs to an approach whose stop line is this close
+YIELD_STATES = set("m=goO")
+RED_STATES = set("rRu")
+YELLOW_STATES = set("yY")
+STOP_STATES = set("sw")
+
+
+@dataclass
+class Lead:
+    gap: float                 # m, bumper to bumper along the path
+    speed: float               # m/s along the path (0 for static obstacles and pedestrians)
+    kind: str                  # "vehicle", "person", "static"
+    source: str                # "lidar", "actors", "sumo"
+    actor: str = ""
+
+
+@dataclass
+class DrivingStats:
+    """What the autopilot saw, for benchmarks (counts are events, not steps)."""
+    steps: int = 0
+    near_misses: int = 0
+    stops: int = 0
+    min_ttc_s: float = float("inf")
+    min_gap_moving_m: float = float("inf")
+    red_light_stops: int = 0
+    stop_sign_stops: int = 0
+    pedestrian_yields: int = 0
+    time_gaps: list = field(default_factory=list, repr=False)   # steady following samples, s
+    events: list = field(default_factory=list, repr=False)      # (t, kind, detail)
+
+    def as_dict(self) -> dict:
+        tg = np.array(self.time_gaps) if self.time_gaps else np.zeros(0)
+        return {"near_misses": self.near_misses, "stops": self.stops, "min_ttc_s": round(self.min_ttc_s, 2),
+                "min_gap_moving_m": round(self.min_gap_moving_m, 2), "red_light_stops": self.red_light_stops,
+                "stop_sign_stops": self.stop_sign_stops, "pedestrian_yields": self.pedestrian_yields,
+                "time_gap_p5_s": round(float(np.percentile(tg, 5)), 2) if len(tg) else None}
 
 
 class Autopilot:
-    def __init__(self, sim):
-        from .vehicle import LENGTH, WHEELBASE, min_turn_radius
+    """The default driver (module doc). ``lidar``: use the ray sensor (needs the PyBullet
+    world); ``time_gap``: the ACC's time gap (s, at least 1.5)."""
 
+    def __init__(self, sim, lidar: bool = True, time_gap: float = TIME_GAP_S, n_rays: int = 41,
+                 lidar_range: float = 70.0):
+        from .vehicle import LENGTH, WHEELBASE, WIDTH, min_turn_radius
+
+        if time_gap < 1.5:
+            raise ValueError("the time gap must be at least 1.5 s")
         self.sim = sim
-        self.length = LENGTH
+        self.length, self.width = LENGTH, WIDTH
+        self.front = LENGTH / 2.0
         self.pp = PurePursuit(WHEELBASE, 1.0 / min_turn_radius())
         self.speed = SpeedController()
+        self.time_gap = float(time_gap)
+        self.lidar = None
+        if lidar and getattr(sim, "physics", None) is not None and sim.physics.client is not None:
+            from .sensors import Lidar
+
+            self.lidar = Lidar(sim.physics.client, n_rays=n_rays, range_m=lidar_range)
         self.target_speed = 0.0
         self.reason = ""
+        self.lead: Lead | None = None
         self.lead_gap = None
+        self.next_control: dict | None = None    # {"kind", "state", "distance_m"} of the next stop line
+        self.scan = None
+        self.stats = DrivingStats()
+        self.last = (0.0, 0.0, 0.0)
+        self._path = None
+        self._s_goal = None
+        self._stop_state: dict = {}
+        self._yellow: dict = {}
+        self._osm_stops: dict = {}
+        self._incoming: dict | None = None
+        self._foes: dict = {}
+        self._internal_foes: dict = {}
+        self._internal_foes_all: dict = {}
+        self._near_miss_until = -1.0
+        self._moving = False
+        self._prev_target = None
+        self._st = None
+        self._s_here = 0.0
+        self._k = 0
+        self._lat = 0.0
 
+    # --- the controller interface ------------------------------------------------------
     def control(self, st, s_here: float, actors, dt: float):
         sim = self.sim
         path = sim.path
+        if path is not self._path:
+            self._new_path(path)
+        self._st, self._s_here = st, s_here
+        self._k, _, self._lat = path.project(st.x, st.y, path.index_at(s_here))
         v = st.speed
+        t = getattr(sim, "t", 0.0)
         steer, _ = self.pp.steer(path, st.x, st.y, st.yaw, v, s_here)
-        v_set = sim.cfg.speed_mps
-        reason = "cruise"
-        # curves ahead: the braking distance plus a margin
-        horizon = max(20.0, v * v / (2 * COMFORT_DECEL) + 10.0)
-        k = path.max_curvature(s_here, s_here + horizon)
-        v_curve = curve_speed(k)
-        if v_curve < v_set:
-            v_set, reason = v_curve, "curve"
-        # the end of the path (goal)
-        remaining = path.length - s_here
+        cfg = sim.cfg
+        v_set = float(cfg.speed_mps)
+        targets = [(v_set, "cruise")]
+        # the path ahead: curves and (if asked) the lanes' speed limits
+        horizon = max(40.0, v * v / (2 * COMFORT_DECEL) + 30.0)
+        v_path, s_bind = plan_speed(path, s_here, v_set, horizon, decel=COMFORT_DECEL,
+                                    speed_limit=bool(getattr(cfg, "respect_speed_limit", False)))
+        if v_path < v_set - 1e-6:
+            i = path.index_at(s_bind)
+            limited = getattr(cfg, "respect_speed_limit", False) and path.max_speed[i] < v_set and \
+                abs(path.curvature_smooth[i]) < 2.5 / max(path.max_speed[i], 0.1) ** 2
+            targets.append((v_path, "speed limit" if limited else "curve"))
+        # the goal, or the end of the path
         if sim.goal_xy is not None:
-            v_goal = math.sqrt(max(0.0, 2 * COMFORT_DECEL * max(0.0, remaining - 3.0)))
-            if v_goal < v_set:
-                v_set, reason = v_goal, "goal"
-        # lead vehicle / pedestrian on the path ahead
-        gap, lead_v, lead_kind = self._lead(actors, st, s_here, path)
-        self.lead_gap = gap
-        if gap is not None:
-            desired = STANDSTILL_GAP_M + TIME_GAP_S * v
-            # approach speed that would stop at STANDSTILL_GAP_M with comfortable deceleration
-            v_gap = math.sqrt(max(0.0, 2 * COMFORT_DECEL * max(0.0, gap - STANDSTILL_GAP_M)))
-            v_follow = min(v_gap, max(0.0, lead_v) + 0.5 * (gap - desired))
-            if lead_kind == "person":
-                v_follow = min(v_follow, v_gap)
-            if v_follow < v_set:
-                v_set, reason = max(0.0, v_follow), "lead " + lead_kind
-        # traffic light of the next link
-        tls = sim.traffic.ego_next_tls() if sim.traffic is not None else None
-        if tls is not None:
-            _, dist, state = tls
-            stop_at = dist - STOP_LINE_MARGIN_M
-            can_stop = v * v / (2 * 4.0) <= max(stop_at, 0.0) + 1.0
-            if state in "rRu" or (state in "yY" and can_stop):
-                v_stop = math.sqrt(max(0.0, 2 * COMFORT_DECEL * max(0.0, stop_at)))
-                if v_stop < v_set:
-                    v_set, reason = v_stop, "red light" if state in "rRu" else "yellow light"
-        self.target_speed = v_set
-        self.reason = reason
-        throttle, brake = self.speed.control(v_set, v, dt)
-        if v_set < 0.3 and v < 0.3:
+            targets.append((stop_speed(self._s_goal - s_here, COMFORT_DECEL), "goal"))
+        else:
+            targets.append((stop_speed(path.length - s_here - 3.0, COMFORT_DECEL), "end of path"))
+        # the edge of the built world (the road goes on, the ground does not)
+        s_edge = self._world_edge(path, s_here, horizon)
+        if s_edge is not None:
+            targets.append((stop_speed(s_edge - s_here - self.front - 5.0, COMFORT_DECEL), "edge of the world"))
+        # obstacles ahead: adaptive cruise
+        self.lead = self._sense(st, s_here, actors, path)
+        self.lead_gap = self.lead.gap if self.lead else None
+        if self.lead is not None:
+            targets.append((self._follow_speed(self.lead, v), "lead " + self.lead.kind))
+        # junctions: lights, stop signs, yielding
+        targets.extend(self._junctions(path, s_here, v, t))
+        # pedestrians on crossings
+        targets.extend(self._crossings(path, s_here, v, actors))
+        v_target, reason = min(targets, key=lambda x: x[0])
+        v_target = max(0.0, v_target)
+        a_ff = 0.0
+        if self._prev_target is not None and reason != "cruise":
+            a_ff = max(-3.0, min(0.0, (v_target - self._prev_target) / max(dt, 1e-3)))
+        self._prev_target = v_target
+        self.target_speed, self.reason = v_target, reason
+        throttle, brake = self.speed.control(v_target, v, dt, pitch=self._road_pitch(st), a_ff=a_ff)
+        if v_target < 0.05 and v < 0.3:
             throttle, brake = 0.0, 1.0
+        self._update_stats(v, t)
+        self.last = (throttle, brake, steer)
         return throttle, brake, steer
 
-    def _lead(self, actors, st, s_here, path):
-        """Nearest actor whose centre lies on the path ahead (within half a lane plus its own
-        half width): gap bumper to bumper, its speed along the path, its kind."""
-        if actors is None or len(actors) == 0:
-            return None, 0.0, ""
-        dx = actors.x - st.x
-        dy = actors.y - st.y
-        c, s = math.cos(st.yaw), math.sin(st.yaw)
-        ahead = dx * c + dy * s
-        cand = np.nonzero((ahead > 0) & (ahead < 80.0))[0]
-        best = (None, 0.0, "")
-        for i in cand:
-            k, s_a, off = path.project(float(actors.x[i]), float(actors.y[i]), sim_hint(path, s_here), window=120)
-            if s_a <= s_here:
+    # --- perception ----------------------------------------------------------------------
+    def _road_pitch(self, st) -> float:
+        """The road's pitch under the car: the chassis pitch minus the suspension's own
+        (squat / dive), from the wheels' compressions."""
+        veh = getattr(self.sim, "vehicle", None)
+        if veh is None:
+            return st.pitch
+        try:
+            c = veh.suspension_compression()
+        except Exception:
+            return st.pitch
+        return st.pitch - math.atan2(0.5 * (c[0] + c[1]) - 0.5 * (c[2] + c[3]), veh.spec.wheelbase)
+
+    def _new_path(self, path):
+        self._path = path
+        self._s_goal = None
+        sim = self.sim
+        if sim.goal_xy is not None:
+            last = path.edges[-1]
+            idx = [k for k, (_, e) in enumerate(path.lane_of) if e == last]
+            if idx:
+                k, s_goal, _ = path.project(sim.goal_xy[0], sim.goal_xy[1], hint=idx[0] + 20,
+                                            window=len(idx) + 20)
+                self._s_goal = float(s_goal)
+            else:
+                self._s_goal = path.length
+        self._osm_stops = self._match_osm_stop_signs(path)
+
+    def _world_edge(self, path, s_here, horizon):
+        """Arc length of the first path point ahead outside the built chunks, or None."""
+        world = getattr(self.sim, "world", None)
+        if world is None or not getattr(world, "chunks", None):
+            return None
+        i0, i1 = path.index_at(s_here), path.index_at(s_here + horizon + 10.0) + 1
+        cs = float(world.chunk_size)
+        ij = np.floor(path.xy[i0:i1] / cs + 0.5).astype(int)
+        keys = set(world.chunks)
+        for k, (ci, cj) in enumerate(ij):
+            if (int(ci), int(cj)) not in keys:
+                return float(path.s[i0 + k])
+        return None
+
+    def _sense(self, st, s_here, actors, path) -> Lead | None:
+        cands = []
+        # 1. lidar
+        self.scan = None
+        body_actor = {}
+        mirror = getattr(self.sim, "mirror", None)
+        if mirror is not None:
+            body_actor = {b: a for a, (b, _) in mirror.active.items()}
+        if self.lidar is not None:
+            from .sensors import corridor_obstacle
+
+            self.scan = scan = self.lidar.scan_vehicle(st)
+            hit = corridor_obstacle(scan, path, s_here, front=self.front)
+            if hit is not None:
+                aid = body_actor.get(hit.body)
+                if aid is not None and actors is not None and len(actors):
+                    try:
+                        i = actors.index(aid)
+                        kind = "person" if actors.kind[i] == "person" else "vehicle"
+                        sp = 0.0 if kind == "person" else max(
+                            0.0, float(actors.speed[i]) * math.cos(float(actors.yaw[i]) - path.heading_at(hit.s)))
+                    except KeyError:
+                        kind, sp = "vehicle", 0.0
+                    cands.append(Lead(hit.gap, sp, kind, "lidar", aid))
+                elif aid is None:
+                    cands.append(Lead(hit.gap, 0.0, "static", "lidar"))
+        # 2. the mirrored actors, projected onto the path
+        if actors is not None and len(actors):
+            lead = self._actors_on_path(actors, st, s_here, path)
+            if lead is not None:
+                cands.append(lead)
+        # 3. SUMO's leader
+        lead = self._sumo_leader(s_here, path)
+        if lead is not None:
+            cands.append(lead)
+        if not cands:
+            return None
+        return min(cands, key=lambda c: c.gap)
+
+    def _foe_lanes(self, path, s_here) -> set:
+        """Junction lanes of other links that cross the path's junction lanes ahead."""
+        out = set()
+        tr = getattr(self.sim, "traffic", None)
+        if tr is None:
+            return out
+        for lane in path.lanes_between(s_here - 5.0, s_here + SENSE_RANGE_M):
+            if not lane.startswith(":"):
                 continue
-            half = 1.6 + 0.5 * float(actors.width[i])
-            if abs(off) > half:
+            foes = self._internal_foes_all.get(lane)
+            if foes is None:
+                try:
+                    foes = set(tr.sumo.lane.getInternalFoes(lane))
+                except Exception:
+                    foes = set()
+                self._internal_foes_all[lane] = foes
+            out |= foes
+        return out
+
+    def _actors_on_path(self, actors, st, s_here, path) -> Lead | None:
+        """The nearest actor in the path corridor ahead, or crossing into it in time to meet
+        the ego: pedestrians, and vehicles on junction lanes that cross the path's (SUMO's
+        ``lane.getInternalFoes``). A crossing actor's position and velocity in the path's
+        frame give the interval it occupies the corridor, compared with the interval the ego
+        needs to pass its spot at the current speed."""
+        dx, dy = actors.x - st.x, actors.y - st.y
+        near = np.nonzero(dx * dx + dy * dy < SENSE_RANGE_M ** 2)[0]
+        if len(near) == 0:
+            return None
+        s0, s1 = s_here, min(path.length, s_here + SENSE_RANGE_M)
+        s, off = path.project_many(actors.x[near], actors.y[near], s0, s1 + 5.0)
+        half_ego = self.width / 2.0 + 0.3
+        v_ego = max(st.speed, 0.5)
+        foes = None
+        tr = getattr(self.sim, "traffic", None)
+        best = None
+        for j, i in enumerate(near):
+            if not np.isfinite(s[j]) or s[j] >= s1 + 4.0:
                 continue
-            gap = (s_a - s_here) - 0.5 * self.length - 0.5 * float(actors.length[i])
-            if best[0] is None or gap < best[0]:
-                rel = math.cos(float(actors.yaw[i]) - path.heading[k])
-                kind = "person" if actors.kind[i] == "person" else "vehicle"
-                best = (max(0.0, gap), float(actors.speed[i]) * rel, kind)
+            person = actors.kind[i] == "person"
+            dyaw = float(actors.yaw[i]) - path.heading_at(float(s[j]))
+            L, W = float(actors.length[i]), float(actors.width[i])
+            ext_lat = 0.5 * W * abs(math.cos(dyaw)) + 0.5 * L * abs(math.sin(dyaw))
+            ext_lon = 0.5 * L * abs(math.cos(dyaw)) + 0.5 * W * abs(math.sin(dyaw))
+            gap = float(s[j]) - s_here - self.front - ext_lon
+            if gap < -self.front:                     # beside or behind the ego
+                continue
+            hw = half_ego + ext_lat
+            sp = float(actors.speed[i])
+            v_along = sp * math.cos(dyaw)
+            v_lat = sp * math.sin(dyaw)               # + = towards the path's left
+            o = float(off[j])
+            inside = abs(o) <= hw
+            crossing = person or abs(math.cos(dyaw)) < 0.7
+            if abs(o) > hw + 12.0:
+                continue
+            if not person and tr is not None:
+                # SUMO's lanes say which vehicles can meet the ego: those on the path's lanes
+                # (or beside them on the same edge: lane changes) and those on junction lanes
+                # that cross the path's; oncoming and other traffic stays in its lanes
+                if foes is None:
+                    foes = self._foe_lanes(path, s_here)
+                    mine = path.lanes_between(s_here - 5.0, s_here + SENSE_RANGE_M)
+                    my_edges = {ln.rsplit("_", 1)[0] for ln in mine}
+                try:
+                    lane = tr.sumo.vehicle.getLaneID(str(actors.ids[i]))
+                except Exception:
+                    lane = None
+                if lane:
+                    on_path = lane in mine or lane.rsplit("_", 1)[0] in my_edges
+                    if lane in foes and not on_path:
+                        crossing = True
+                    elif not on_path:
+                        continue
+                    elif not inside:
+                        continue
+                elif not inside:
+                    continue
+            if inside and not crossing:
+                lead_v = max(0.0, v_along)
+            else:
+                lead_v = 0.0
+                min_vlat = 0.3 if person else 0.5
+                towards = o * v_lat < 0
+                if abs(v_lat) < min_vlat:
+                    if not inside:
+                        continue
+                    t_in, t_out = 0.0, float("inf")
+                elif inside:
+                    t_in = 0.0
+                    t_out = (hw + abs(o)) / abs(v_lat) if towards else (hw - abs(o)) / abs(v_lat)
+                elif towards:
+                    t_in = (abs(o) - hw) / abs(v_lat)
+                    t_out = (abs(o) + hw) / abs(v_lat)
+                else:
+                    continue
+                if t_in > 4.0:
+                    continue
+                t_arr = max(gap, 0.0) / v_ego
+                t_pass = (max(gap, 0.0) + self.length + 2.0 * ext_lon) / v_ego
+                if t_arr > t_out + 1.0 or t_pass < t_in - 0.5:
+                    continue                          # it is gone before, or comes after, the ego
+            if best is None or gap < best.gap:
+                best = Lead(max(0.0, gap), lead_v, "person" if person else "vehicle", "actors", str(actors.ids[i]))
         return best
 
+    def _sumo_leader(self, s_here, path) -> Lead | None:
+        tr = getattr(self.sim, "traffic", None)
+        if tr is None:
+            return None
+        try:
+            s = tr.sumo
+            res = s.vehicle.getLeader("ego", SENSE_RANGE_M)
+            if not res or not res[0]:
+                return None
+            lid, dist = res
+            gap = float(dist) + float(s.vehicle.getMinGap("ego"))
+            lane = s.vehicle.getLaneID(lid)
+            if lane not in path.lanes_between(s_here, s_here + gap + self.front + 15.0):
+                return None
+            return Lead(max(0.0, gap), max(0.0, float(s.vehicle.getSpeed(lid))), "vehicle", "sumo", lid)
+        except Exception:
+            return None
 
-def sim_hint(path, s_here):
-    return int(np.searchsorted(path.s, s_here))
+    def _follow_speed(self, lead: Lead, v: float) -> float:
+        d0 = PERSON_GAP_M if lead.kind == "person" else STANDSTILL_GAP_M
+        d_star = d0 + self.time_gap * v
+        vl = lead.speed
+        v_stop = stop_speed(lead.gap - d0, COMFORT_DECEL)
+        if vl <= 0.5:                 # standing (or crossing): stop d0 behind it, and when
+            if lead.gap - d0 < 15.0:  # near, do not speed up towards it
+                return min(v_stop, max(v, 2.0))
+            return v_stop
+        # moving: close the gap to the time gap, never faster than what still allows braking
+        # to the lead's speed d0 behind it at a comfortable deceleration
+        v_follow = vl + 0.4 * (lead.gap - d_star)
+        v_safe = math.sqrt(max(0.0, vl * vl + 2.0 * COMFORT_DECEL * (lead.gap - d0)))
+        return max(0.0, min(v_follow, max(v_safe, v_stop)))
+
+    # --- junctions -----------------------------------------------------------------------
+    def _junctions(self, path, s_here, v, t) -> list:
+        out = []
+        self.next_control = None
+        sumo = self.sim.traffic.sumo if getattr(self.sim, "traffic", None) is not None else None
+        if sumo is None:
+            return out
+        horizon = max(60.0, v * v / (2 * COMFORT_DECEL) + 30.0)
+        front = s_here + self.front
+        seen = 0
+        for stop in path.stops:
+            if stop.s < front - 0.3:
+                if stop.s < front - 5.0:        # passed: forget (a loop may bring it back)
+                    self._stop_state.pop((stop.junction, stop.lane), None)
+                continue
+            if stop.s > front + horizon or seen >= 3:
+                break
+            seen += 1
+            d = stop.s - front - STOP_LINE_MARGIN_M
+            key = (stop.junction, stop.lane)
+            try:
+                state = stop.state(sumo)
+            except Exception:
+                state = stop.initial_state
+            osm_stop = key in self._osm_stops
+            kind = "light" if stop.tls else ("stop sign" if state in STOP_STATES or osm_stop else
+                                             ("yield" if state in YIELD_STATES else "priority"))
+            if self.next_control is None:
+                self.next_control = {"kind": kind, "state": state, "distance_m": round(stop.s - front, 2),
+                                     "junction": stop.junction}
+            if state in RED_STATES:
+                out.append((stop_speed(d, COMFORT_DECEL), "red light"))
+                self._yellow.pop(key, None)
+                continue
+            if state in YELLOW_STATES:
+                # decide once, when the light turns yellow: stop if the car can (at most
+                # YELLOW_DECEL), else go through; the decision holds while it stays yellow
+                decel = self._yellow.get(key)
+                if decel is None:
+                    need = v * v / (2.0 * max(d, 0.01))
+                    decel = self._yellow[key] = (max(COMFORT_DECEL, need) if need <= YELLOW_DECEL
+                                                 or d > 0 and v < 1.0 else 0.0)
+                if decel > 0.0:
+                    out.append((stop_speed(d, decel), "yellow light"))
+                continue
+            self._yellow.pop(key, None)
+            if state in STOP_STATES or (osm_stop and not stop.tls and state not in "GM"):
+                v_c = self._stop_sign(stop, key, d, v, t)
+                if v_c is not None:
+                    out.append((v_c, "stop sign"))
+                    break
+                continue
+            if state in YIELD_STATES:
+                v_c = self._yield(stop, key, d, v, t)
+                if v_c is not None:
+                    out.append((v_c, "yield"))
+                    break
+        return out
+
+    def _stop_sign(self, stop, key, d, v, t):
+        rec = self._stop_state.setdefault(key, {"since": None, "released": False, "t0": t})
+        if rec["released"]:
+            return None
+        if v < 0.15 and d < 3.0:
+            if rec["since"] is None:
+                rec["since"] = t
+                self.stats.stop_sign_stops += 1
+                self.stats.events.append((round(t, 2), "stop sign", stop.junction))
+        elif v > 0.5:
+            rec["since"] = None
+        if rec["since"] is not None and t - rec["since"] >= STOP_SIGN_HOLD_S - 1e-6:
+            if self._junction_clear(stop, d, v, t - rec["since"]):
+                rec["released"] = True
+                self.stats.events.append((round(t, 2), "stop sign go", stop.junction))
+                return None
+        return stop_speed(d, COMFORT_DECEL)
+
+    def _yield(self, stop, key, d, v, t):
+        rec = self._stop_state.setdefault(key, {"since": None, "released": False, "t0": t})
+        if rec["released"]:
+            return None
+        if d > max(20.0, v * v / (2 * COMFORT_DECEL) + 8.0):
+            return None                                   # not yet: decide when closer
+        if d < -0.5 and v > 1.0:
+            rec["released"] = True                        # committed
+            return None
+        waited = 0.0 if rec["since"] is None else t - rec["since"]
+        if self._junction_clear(stop, d, v, waited):
+            if d < 3.0:
+                rec["released"] = True                    # at the line and clear: go, and stay gone
+            return None
+        if v < 0.2 and rec["since"] is None:
+            rec["since"] = t
+        return stop_speed(d, COMFORT_DECEL)
+
+    def _incoming_lanes(self) -> dict:
+        if self._incoming is None:
+            s = self.sim.traffic.sumo
+            inc: dict = {}
+            for lane in s.lane.getIDList():
+                if lane.startswith(":"):
+                    continue
+                for link in s.lane.getLinks(lane):
+                    inc.setdefault(link[0], []).append(lane)
+            self._incoming = inc
+        return self._incoming
+
+    def _junction_clear(self, stop, d, v, waited: float) -> bool:
+        """No vehicle with right of way arrives before the ego has crossed, and nothing is on
+        a conflicting lane inside the junction."""
+        s = self.sim.traffic.sumo
+        # time for the ego to get clear of the conflict area (about the middle of the junction)
+        dist = max(d, 0.0) + 0.6 * stop.internal_length + self.length
+        if v < 1.0:
+            t_need = math.sqrt(2.0 * dist / 1.8) + 1.0
+        else:
+            t_need = dist / v + 1.0
+        t_need = min(t_need, 7.0)
+        if waited > YIELD_GIVE_UP_S:
+            t_need = 2.0
+        key = (stop.lane, stop.to_lane)
+        foes = self._foes.get(key)
+        if foes is None:
+            try:
+                foes = [f for f in s.lane.getFoes(stop.lane, stop.to_lane) if not f.startswith(":")]
+            except Exception:
+                foes = []
+            self._foes[key] = foes
+        inc = self._incoming_lanes()
+        for f in foes:
+            lanes = [(f, 0.0)]
+            Lf = s.lane.getLength(f)
+            lanes += [(p, Lf) for p in inc.get(f, [])]
+            for lane, extra in lanes:
+                L = s.lane.getLength(lane)
+                for vid in s.lane.getLastStepVehicleIDs(lane):
+                    if vid == "ego":
+                        continue
+                    sp = s.vehicle.getSpeed(vid)
+                    togo = L - s.vehicle.getLanePosition(vid) + extra
+                    if sp > 0.5 and togo / sp < t_need:
+                        return False
+        vias = self._internal_foes.get(stop.via)
+        if vias is None:
+            try:
+                vias = [f for f in s.lane.getInternalFoes(stop.via) if not self._is_ped_lane(f)]
+            except Exception:
+                vias = []
+            self._internal_foes[stop.via] = vias
+        for lane in vias:
+            for vid in s.lane.getLastStepVehicleIDs(lane):
+                if vid != "ego":
+                    return False
+        return True
+
+    @staticmethod
+    def _is_ped_lane(lane: str) -> bool:
+        core = lane[1:].rsplit("_", 1)[0]
+        tail = core.rsplit("_", 1)[-1]
+        return tail.startswith("c") or tail.startswith("w")
+
+    def _match_osm_stop_signs(self, path) -> dict:
+        """Stop lines of the path with an OpenStreetMap stop sign next to them (from the
+        world's scenery): the sign is within OSM_SIGN_RADIUS_M of this approach's stop line and
+        nearer to it than to any other approach of the junction."""
+        world = getattr(self.sim, "world", None)
+        tr = getattr(self.sim, "traffic", None)
+        if world is None or tr is None or not path.stops:
+            return {}
+        signs = []
+        try:
+            for ij in world.chunks:
+                signs += [(float(i["x"]), float(i["y"])) for i in world.scenery(ij) if i.get("kind") == "stop_sign"]
+        except Exception:
+            return {}
+        if not signs:
+            return {}
+        signs = np.array(signs)
+        s = tr.sumo
+        out = {}
+        for stop in path.stops:
+            if stop.tls:
+                continue
+            p = path.point_at(stop.s)
+            d = np.hypot(signs[:, 0] - p[0], signs[:, 1] - p[1])
+            j = int(np.argmin(d))
+            if d[j] > OSM_SIGN_RADIUS_M:
+                continue
+            mine = d[j]
+            try:
+                others = [e for e in s.junction.getIncomingEdges(stop.junction)
+                          if e != stop.lane.rsplit("_", 1)[0] and not e.startswith(":")]
+            except Exception:
+                others = []
+            nearer = False
+            for e in others:
+                for lane in _drivable_lanes(s, e):
+                    sh = s.lane.getShape(lane)
+                    if sh and math.hypot(sh[-1][0] - signs[j, 0], sh[-1][1] - signs[j, 1]) < mine - 0.5:
+                        nearer = True
+                        break
+                if nearer:
+                    break
+            if not nearer:
+                out[(stop.junction, stop.lane)] = (float(signs[j, 0]), float(signs[j, 1]))
+        return out
+
+    # --- pedestrians on crossings ---------------------------------------------------------
+    def _crossings(self, path, s_here, v, actors=None) -> list:
+        out = []
+        persons = None
+        if actors is not None and len(actors):
+            pm = actors.kind == "person"
+            if pm.any():
+                persons = np.column_stack([actors.x[pm], actors.y[pm]])
+        tr = getattr(self.sim, "traffic", None)
+        if tr is None:
+            return out
+        s = tr.sumo
+        front = s_here + self.front
+        horizon = max(40.0, v * v / (2 * COMFORT_DECEL) + 20.0)
+        for c in path.crossings:
+            near_edge = c.s - c.width / 2.0
+            if c.s + c.width / 2.0 < front:
+                continue
+            if near_edge > front + horizon:
+                break
+            if persons is not None and c.shape is not None:
+                # people waiting at either end: approach slowly, ready to stop
+                ends = np.array([c.shape[0], c.shape[-1]])
+                d = np.hypot(persons[:, None, 0] - ends[None, :, 0], persons[:, None, 1] - ends[None, :, 1])
+                if (d < 3.5).any():
+                    d_c = near_edge - front - CROSSING_MARGIN_M
+                    if d_c > -0.5:
+                        out.append((math.sqrt(CROSSING_APPROACH_MPS ** 2 + 2 * COMFORT_DECEL * max(d_c, 0.0)),
+                                    "pedestrian crossing"))
+            try:
+                on_it = s.edge.getLastStepPersonIDs(c.edge)
+            except Exception:
+                continue
+            if not on_it:
+                continue
+            p_here = path.point_at(c.s)
+            h = path.heading_at(c.s)
+            ch, sh = math.cos(h), math.sin(h)
+            block = False
+            for pid in on_it:
+                px, py = s.person.getPosition(pid)
+                lat = -(px - p_here[0]) * sh + (py - p_here[1]) * ch      # across our path
+                sp = s.person.getSpeed(pid)
+                ang = math.radians(90.0 - s.person.getAngle(pid))
+                vlat = sp * (-math.cos(ang) * sh + math.sin(ang) * ch)
+                # on our side of the path or walking into it within 3 s
+                if abs(lat) < self.width / 2.0 + 2.5 or (abs(lat) < 8.0 and lat * vlat < 0
+                                                          and abs(lat) - 3.0 * abs(vlat) < self.width / 2.0 + 1.0):
+                    block = True
+                    break
+            if block:
+                d = near_edge - front - CROSSING_MARGIN_M
+                if d < -0.5:
+                    continue          # already on it: the corridor check handles a person ahead
+                out.append((stop_speed(d, COMFORT_DECEL), "pedestrian crossing"))
+                break
+        return out
+
+    # --- bookkeeping ---------------------------------------------------------------------
+    def _update_stats(self, v, t):
+        st = self.stats
+        st.steps += 1
+        if v > 2.0:
+            self._moving = True
+        elif v < 0.2 and self._moving:
+            self._moving = False
+            st.stops += 1
+            r = self.reason
+            if r == "red light":
+                st.red_light_stops += 1
+            elif r == "pedestrian crossing" or r == "lead person":
+                st.pedestrian_yields += 1
+            st.events.append((round(t, 2), "stop", r))
+        lead = self.lead
+        if lead is None or v < 1.0:
+            return
+        closing = v - lead.speed
+        ttc = lead.gap / closing if closing > 0.3 else float("inf")
+        st.min_ttc_s = min(st.min_ttc_s, ttc)
+        st.min_gap_moving_m = min(st.min_gap_moving_m, lead.gap)
+        if lead.kind == "vehicle" and lead.speed > 2.0 and abs(closing) < 0.5 and lead.gap < 60:
+            st.time_gaps.append(lead.gap / v)
+        if ttc < NEAR_MISS_TTC_S or lead.gap < NEAR_MISS_GAP_M:
+            if t >= self._near_miss_until:
+                st.near_misses += 1
+                log.info("near miss at t=%.1f s: %s %s, gap %.1f m, ttc %.2f s, %.1f m/s", t, lead.kind, lead.actor,
+                         lead.gap, ttc, v)
+                st.events.append((round(t, 2), "near miss", f"{lead.kind} {lead.actor} gap {lead.gap:.1f} m "
+                                                            f"ttc {ttc:.2f} s v {v:.1f}"))
+            self._near_miss_until = t + 3.0
+
+    # --- what a user's driver sees -----------------------------------------------------------
+    def observation(self) -> dict:
+        """The autopilot's view after its last :meth:`control` (for user drivers and the env)."""
+        st = self._st
+        path = self.sim.path
+        if st is None:
+            return {}
+        k = self._k
+        he = math.atan2(math.sin(st.yaw - path.heading[k]), math.cos(st.yaw - path.heading[k]))
+        nc = self.next_control or {}
+        kind, state = nc.get("kind"), nc.get("state", "")
+        if kind == "light":
+            code = 3 if state in RED_STATES else (2 if state in YELLOW_STATES else 1)
+        else:
+            code = {"stop sign": 4, "yield": 5}.get(kind, 0)
+        return {
+            "t": getattr(self.sim, "t", 0.0), "state": st, "speed": st.speed, "set_speed": float(self.sim.cfg.speed_mps),
+            "target_speed": self.target_speed, "reason": self.reason,
+            "s": self._s_here, "remaining_m": (self._s_goal if self._s_goal is not None else path.length) - self._s_here,
+            "lateral_offset": self._lat, "heading_error": he,
+            "curvature_ahead": path.max_curvature(self._s_here, self._s_here + 30.0),
+            "lidar": None if self.scan is None else self.scan.distance.copy(),
+            "lidar_body": None if self.scan is None else self.scan.body.copy(),
+            "lead_gap": None if self.lead is None else self.lead.gap,
+            "lead_speed": None if self.lead is None else self.lead.speed,
+            "lead_kind": None if self.lead is None else self.lead.kind,
+            "next_control": nc, "light_code": code,   # 0 none/priority, 1 green, 2 yellow, 3 red, 4 stop, 5 yield
+            "autopilot": self.last,
+        }
+
+
+class CallbackDriver:
+    """Drive with your own function: ``fn(obs) -> (throttle, brake, steer)``.
+
+    ``obs`` is :meth:`Autopilot.observation` (the autopilot runs alongside as the perception
+    and to suggest a command, ``obs["autopilot"]``, but only ``fn``'s command is applied).
+    Install it on a set-up simulation: ``sim.driver = CallbackDriver(sim, fn)``."""
+
+    def __init__(self, sim, fn, **autopilot_kw):
+        self.sim = sim
+        self.fn = fn
+        self.autopilot = Autopilot(sim, **autopilot_kw)
+        self.speed = self.autopilot.speed
+        self.target_speed = float("nan")
+        self.last_obs: dict = {}
+
+    def control(self, st, s_here, actors, dt):
+        self.autopilot.control(st, s_here, actors, dt)
+        self.last_obs = obs = self.autopilot.observation()
+        out = self.fn(obs)
+        throttle, brake, steer = (float(x) for x in out)
+        return (max(0.0, min(1.0, throttle)), max(0.0, min(1.0, brake)), max(-1.0, min(1.0, steer)))

@@ -5,20 +5,39 @@
   internal lanes between them (SUMO's own ``via`` lanes, so the path is exactly the lane
   geometry SUMO's vehicles use), and a smooth lateral blend where the route needs a lane
   change. Everything comes from libsumo (``lane.getLinks``, ``lane.getShape``): no second
-  parse of the network.
-* :class:`PurePursuit` steers towards a look-ahead point on the path.
-* :class:`SpeedController` is a PI controller on wheel torque (throttle / brake), with a
-  curve speed limit from the path's curvature ahead, so the physics car is driven through its
-  wheels, never by setting its pose.
+  parse of the network. Along the way it records what a driver needs ahead:
+
+  - ``stops``: one :class:`StopLine` per junction the path crosses: the arc length of the stop
+    line (where SUMO's approach lane ends), the approach lane, the link's target and ``via``
+    lanes, and whether a traffic light controls it. The link's *current* state (SUMO's
+    letters: ``r``/``y``/``G``/``g`` of a light, ``M`` major, ``m`` minor, ``=`` right before
+    left, ``s`` stop sign, ``w`` all-way stop) is read live with :meth:`StopLine.state`;
+  - ``crossings``: one :class:`CrossingOnPath` per pedestrian crossing whose internal lane
+    conflicts with the path's junction lanes (``lane.getInternalFoes``), with the arc length
+    where the path meets the crossing's centreline;
+  - ``max_speed``: SUMO's speed limit of the lane at every path point.
+
+* :class:`PurePursuit` steers the rear axle towards a look-ahead point on the path (the
+  steering command of ``cosim.vehicle`` is a rear-axle path curvature, so the geometry is
+  exact for the raycast car).
+* :class:`SpeedController` turns a target speed into throttle / brake through a longitudinal
+  force model of the car (mass, grade from the chassis pitch, rolling resistance, drag, the
+  drivetrain's torque and power limits, the brakes) plus a PI correction, so the physics car is
+  driven through its wheels, never by setting its pose, and holds its speed on steep grades.
+* :func:`curve_speed` and :func:`stop_speed` give the speed limits a planner takes the minimum
+  of (:func:`plan_speed` applies them along the path ahead with a comfortable deceleration).
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import re
+from dataclasses import dataclass, field
 
 import numpy as np
 
 CAR = "passenger"
+TLS_STATES = set("rRyYgGuoO")          # letters a traffic light gives a link
+CROSSING_RE = re.compile(r"^:(.+)_c\d+_\d+$")
 
 
 def _lane_allows(sim, lane: str, vclass: str = CAR) -> bool:
@@ -45,6 +64,111 @@ def _resample(P: np.ndarray, step: float) -> np.ndarray:
     return np.column_stack([np.interp(t, s, P[:, 0]), np.interp(t, s, P[:, 1])])
 
 
+def junction_of(internal_lane: str) -> str:
+    """Junction id of an internal lane ``:J_k_i`` (junction ids may contain underscores)."""
+    return internal_lane[1:].rsplit("_", 2)[0]
+
+
+def _segment_intersection(p, q, a, b):
+    """Parameter t along p->q where it crosses a->b (both as segments), or None."""
+    r = q - p
+    s = b - a
+    den = r[0] * s[1] - r[1] * s[0]
+    if abs(den) < 1e-12:
+        return None
+    w = a - p
+    t = (w[0] * s[1] - w[1] * s[0]) / den
+    u = (w[0] * r[1] - w[1] * r[0]) / den
+    if -1e-9 <= t <= 1 + 1e-9 and -1e-9 <= u <= 1 + 1e-9:
+        return t
+    return None
+
+
+def _turnaround(sim, edge: str, nxt: str) -> bool:
+    """Does the route's step edge -> nxt use a turnaround ('t') link (and no other)?"""
+    found = other = False
+    for ln in _drivable_lanes(sim, edge):
+        for link in sim.lane.getLinks(ln):
+            if link[0].rsplit("_", 1)[0] == nxt:
+                if link[6] == "t":
+                    found = True
+                else:
+                    other = True
+    return found and not other
+
+
+def route_without_turnarounds(sim, src: str, dst: str, max_edges: int = 20000) -> list[str] | None:
+    """Shortest route by road from edge ``src`` to edge ``dst`` (both included) that uses no
+    turnaround link (Dijkstra over lane links, expanded lazily), or None."""
+    import heapq
+
+    succ: dict = {}
+
+    def nexts(e):
+        out = succ.get(e)
+        if out is None:
+            best = {}
+            for ln in _drivable_lanes(sim, e):
+                for link in sim.lane.getLinks(ln):
+                    if link[6] == "t" or not _lane_allows(sim, link[0]):
+                        continue
+                    ne = link[0].rsplit("_", 1)[0]
+                    if ne not in best:
+                        best[ne] = float(sim.lane.getLength(link[0])) + float(link[7] or 0.0)
+            out = succ[e] = list(best.items())
+        return out
+
+    dist = {src: 0.0}
+    prev = {}
+    heap = [(0.0, src)]
+    seen = 0
+    while heap:
+        d, e = heapq.heappop(heap)
+        if d > dist.get(e, float("inf")):
+            continue
+        if e == dst:
+            break
+        seen += 1
+        if seen > max_edges:
+            break
+        for ne, w in nexts(e):
+            nd = d + w
+            if nd < dist.get(ne, float("inf")):
+                dist[ne] = nd
+                prev[ne] = e
+                heapq.heappush(heap, (nd, ne))
+    if dst not in prev:
+        return None
+    out = [dst]
+    while out[-1] != src:
+        out.append(prev[out[-1]])
+        if len(out) > max_edges:
+            return None
+    return out[::-1]
+
+
+def without_turnarounds(sim, edges: list[str]) -> tuple[list[str], list]:
+    """The route with every turnaround (a U-turn inside a junction, far tighter than the car's
+    4.6 m turning radius) replaced by the shortest detour without one (around a block).
+    Returns (edges, detours made as (from edge, to edge, edges added))."""
+    out = [edges[0]] if edges else []
+    detours = []
+    for nxt in edges[1:]:
+        cur = out[-1]
+        try:
+            uturn = _turnaround(sim, cur, nxt)
+        except Exception:
+            uturn = False
+        if uturn:
+            alt = route_without_turnarounds(sim, cur, nxt)
+            if alt and len(alt) > 2:
+                out.extend(alt[1:])
+                detours.append((cur, nxt, len(alt) - 2))
+                continue
+        out.append(nxt)
+    return out, detours
+
+
 @dataclass
 class PathPoint:
     s: float
@@ -54,78 +178,285 @@ class PathPoint:
     edge: str
 
 
+@dataclass
+class StopLine:
+    """Where the path enters a junction: the end of SUMO's approach lane."""
+    s: float                  # arc length of the stop line on the path
+    lane: str                 # approach lane (ends at the stop line)
+    to_lane: str              # lane after the junction
+    via: str                  # first internal lane of the link
+    junction: str
+    tls: bool                 # a traffic light controls the link (when the path was built)
+    initial_state: str
+    internal_length: float = 0.0   # m of junction lanes until the next normal lane
+
+    def link(self, sim):
+        """SUMO's link tuple of this connection now (state letters change with the light)."""
+        for link in sim.lane.getLinks(self.lane):
+            if link[0] == self.to_lane and (not self.via or link[4] == self.via):
+                return link
+        return None
+
+    def state(self, sim) -> str:
+        link = self.link(sim)
+        return link[5] if link else self.initial_state
+
+
+@dataclass
+class CrossingOnPath:
+    """A pedestrian crossing the path goes over."""
+    s: float                  # arc length where the path meets the crossing's centreline
+    edge: str                 # SUMO crossing edge (``:J_c0``)
+    lane: str
+    width: float
+    junction: str
+    shape: np.ndarray = field(repr=False, default=None)
+
+
 class LanePath:
     """A drivable centreline along a SUMO route. ``xy`` (n, 2), ``s`` arc length, per point the
-    SUMO lane and edge it belongs to."""
+    SUMO lane and edge it belongs to; ``stops``, ``crossings`` and ``max_speed`` (module doc)."""
 
     STEP = 1.0
 
     def __init__(self, sim, edges: list[str], start_lane: str | None = None, start_pos: float = 0.0):
-        self.edges = list(edges)
+        self.edges, self.detours = without_turnarounds(sim, list(edges))
         pts, lanes = [], []
-        # which lane to be on at each edge: must connect to the next edge
-        plan = []
+        # which lane to be on at each edge: one with a link to the next edge, chosen by a
+        # backward pass that minimises lane changes, cheaper on long edges (a change on a
+        # 0.2 m edge would be a sideways jump)
+        n_e = len(self.edges)
+        links = []                 # per edge: {lane: [(to_lane, via, state), ...]} towards the next edge
+        lanes_e = []
+        lengths = []
         for i, e in enumerate(self.edges):
             cands = _drivable_lanes(sim, e)
             if not cands:
                 raise ValueError(f"edge {e} has no lane for cars")
-            if i + 1 < len(self.edges):
+            lanes_e.append(cands)
+            lengths.append(float(sim.lane.getLength(cands[0])))
+            if i + 1 < n_e:
                 nxt = self.edges[i + 1]
-                ok = []
+                lk = {}
                 for ln in cands:
                     for link in sim.lane.getLinks(ln):
-                        to_lane, via = link[0], link[4]
-                        if to_lane.rsplit("_", 1)[0] == nxt:
-                            ok.append((ln, to_lane, via))
-                            break
-                if not ok:
+                        if link[0].rsplit("_", 1)[0] == nxt and _lane_allows(sim, link[0]):
+                            lk.setdefault(ln, []).append((link[0], link[4], link[5]))
+                if not lk:
                     raise ValueError(f"no lane of {e} connects to {nxt}")
-                plan.append(ok[0])          # the rightmost lane with the link
+                links.append(lk)
             else:
-                plan.append((cands[0], None, None))
-        entry = start_lane if start_lane and start_lane.rsplit("_", 1)[0] == self.edges[0] else plan[0][0]
+                links.append({ln: [(None, None, None)] for ln in cands})
+
+        def idx(lane):
+            return int(lane.rsplit("_", 1)[1])
+
+        def change_cost(a, b, length):
+            return abs(idx(a) - idx(b)) * (1.0 + 60.0 / max(length, 1.0))
+
+        INF = float("inf")
+        cost = [dict() for _ in range(n_e)]      # cost[i][lane]: from being on `lane` (with its link) to the end
+        best_link = [dict() for _ in range(n_e)]
+        for i in range(n_e - 1, -1, -1):
+            for ln, lk in links[i].items():
+                if i == n_e - 1:
+                    cost[i][ln], best_link[i][ln] = 0.0, lk[0]
+                    continue
+                bc, bl = INF, lk[0]
+                for target in lk:
+                    c = self._enter_cost(target[0], cost[i + 1], lengths[i + 1], change_cost)
+                    if c < bc:
+                        bc, bl = c, target
+                cost[i][ln], best_link[i][ln] = bc, bl
+
+        def choose(i, entry_lane):
+            """Lane to be on at edge i arriving on entry_lane: fewest (weighted) changes to the end."""
+            best, bc = None, INF
+            for ln in links[i]:
+                c = (change_cost(entry_lane, ln, lengths[i]) if entry_lane else 0.0) + cost[i][ln]
+                if c < bc - 1e-9 or (abs(c - bc) <= 1e-9 and best is not None and idx(ln) < idx(best)):
+                    best, bc = ln, c
+            return best
+
+        entry = start_lane if start_lane and start_lane.rsplit("_", 1)[0] == self.edges[0] else None
+        if entry is None:
+            entry = choose(0, None)
+        plan = []
+        stop_marks = []            # (point index in the unfiltered list, plan entry, internal length)
+        n_pts = 0
         for i, e in enumerate(self.edges):
-            want = plan[i][0]
+            want = choose(i, entry)
+            to_lane, via, st = best_link[i][want]
+            plan.append((want, to_lane, via, st))
             shape_in = np.array(sim.lane.getShape(entry))
             shape_want = np.array(sim.lane.getShape(want))
+            if i == 0 and start_pos > 0:
+                shape_in = self._cut_from(shape_in, start_pos)
+                shape_want = self._cut_from(shape_want, start_pos)
             if entry != want and len(shape_in) >= 2 and len(shape_want) >= 2:
                 seg = self._blend(shape_in, shape_want)
             else:
                 seg = shape_want
-            if i == 0 and start_pos > 0:
-                seg = self._cut_from(seg, start_pos)
             seg = _resample(seg, self.STEP)
+            last_start = n_pts
             pts.append(seg)
             lanes.extend([(want, e)] * len(seg))
+            n_pts += len(seg)
             if plan[i][1] is not None:
+                end_index = n_pts - 1
                 # internal (junction) lanes SUMO uses for this link
                 via = plan[i][2]
                 guard = 0
+                internal = 0.0
                 while via and via.startswith(":") and guard < 5:
                     vs = _resample(np.array(sim.lane.getShape(via)), self.STEP)
+                    internal += float(sim.lane.getLength(via))
                     pts.append(vs)
                     lanes.extend([(via, via.rsplit("_", 1)[0])] * len(vs))
+                    n_pts += len(vs)
                     nxt = None
                     for link in sim.lane.getLinks(via):
                         nxt = link[0]
                         break
                     via = nxt if nxt and nxt.startswith(":") else None
                     guard += 1
+                stop_marks.append((end_index, plan[i], internal))
                 entry = plan[i][1]
         P = np.vstack(pts)
         keep = np.ones(len(P), dtype=bool)
         keep[1:] = np.hypot(*np.diff(P, axis=0).T) > 1e-3
-        self.xy = P[keep]
-        self.lane_of = [lanes[k] for k in np.nonzero(keep)[0]]
+        new_index = np.cumsum(keep) - 1
+        self._set_geometry(P[keep], [lanes[k] for k in np.nonzero(keep)[0]], sim)
+        # stop lines and crossings
+        self.stops: list[StopLine] = []
+        for idx, (ln, to_lane, via, st), internal in stop_marks:
+            j = int(new_index[idx])
+            jun = junction_of(via) if via else ""
+            self.stops.append(StopLine(s=float(self.s[j]), lane=ln, to_lane=to_lane, via=via or "", junction=jun,
+                                       tls=(st or "") in TLS_STATES, initial_state=st or "", internal_length=internal))
+        self.crossings: list[CrossingOnPath] = self._find_crossings(sim)
+        self.last_lane = plan[-1][0]                       # the lane the path ends on
+        self.last_edge_start = int(new_index[last_start])  # index where the last edge begins
+
+    def _set_geometry(self, xy: np.ndarray, lane_of: list, sim, limits: dict | None = None):
+        keep = np.ones(len(xy), dtype=bool)
+        keep[1:] = np.hypot(*np.diff(xy, axis=0).T) > 1e-3
+        self.xy = xy[keep]
+        self.lane_of = [lane_of[k] for k in np.nonzero(keep)[0]]
         d = np.hypot(*np.diff(self.xy, axis=0).T)
         self.s = np.concatenate([[0.0], np.cumsum(d)])
         self.length = float(self.s[-1])
         h = np.arctan2(*np.diff(self.xy, axis=0).T[::-1])
-        self.heading = np.concatenate([h, h[-1:]])
+        self.heading = np.concatenate([h, h[-1:]]) if len(h) else np.zeros(len(self.xy))
         dh = np.angle(np.exp(1j * np.diff(self.heading)))
         ds = np.maximum(d, 1e-6)
         k = dh / ds
-        self.curvature = np.concatenate([k, k[-1:]])
+        self.curvature = np.concatenate([k, k[-1:]]) if len(k) else np.zeros(len(self.xy))
+        self.curvature_smooth = self._smooth_curvature()
+        # speed limits of the lanes
+        limits = dict(limits or {})
+        for lane, _ in set(self.lane_of):
+            if lane in limits:
+                continue
+            try:
+                limits[lane] = float(sim.lane.getMaxSpeed(lane))
+            except Exception:
+                limits[lane] = 50.0
+        self._limits = limits
+        self.max_speed = np.array([limits[lane] for lane, _ in self.lane_of])
+        return keep
+
+    def extended(self, sim, edges: list[str], keep_m: float = 300.0) -> "LanePath":
+        """This path continued along ``edges`` (``edges[0]`` is this path's last edge): the
+        geometry before the last edge is kept as it is (the car is on it, perhaps halfway
+        through a lane change), up to ``keep_m`` metres of it; the last edge is re-planned for
+        the continuation. Arc lengths start again from 0 at the first kept point."""
+        if not edges or edges[0] != self.edges[-1]:
+            raise ValueError("an extension must start on the path's last edge")
+        from dataclasses import replace
+
+        tail = LanePath(sim, edges, start_lane=self.last_lane)
+        i1 = self.last_edge_start
+        i0 = int(np.searchsorted(self.s, self.s[i1] - keep_m)) if i1 > 0 else 0
+        i0 = min(i0, i1)
+        cut = float(self.s[i0])
+        new = object.__new__(LanePath)
+        kept_edges = []
+        for _, e in self.lane_of[i0:i1]:
+            if not e.startswith(":") and (not kept_edges or kept_edges[-1] != e):
+                kept_edges.append(e)
+        new.edges = kept_edges + tail.edges
+        xy = np.vstack([self.xy[i0:i1], tail.xy])
+        new._set_geometry(xy, self.lane_of[i0:i1] + tail.lane_of, sim, limits={**self._limits, **tail._limits})
+        s_join = float(new.s[i1 - i0]) if i1 - i0 < len(new.s) else new.length
+        new.stops = [replace(st, s=st.s - cut) for st in self.stops if cut - 1e-6 <= st.s < self.s[i1] - 1e-6] + \
+            [replace(st, s=st.s + s_join) for st in tail.stops]
+        new.crossings = [replace(c, s=c.s - cut) for c in self.crossings if cut - 1e-6 <= c.s < self.s[i1] - 1e-6]
+        new.crossings += [replace(c, s=c.s + s_join) for c in tail.crossings
+                          if all(c.lane != o.lane or abs(c.s + s_join - o.s) > 5.0 for o in new.crossings)]
+        new.last_lane = tail.last_lane
+        new.last_edge_start = (i1 - i0) + tail.last_edge_start
+        return new
+
+    @staticmethod
+    def _enter_cost(lane, cost_next: dict, length: float, change_cost) -> float:
+        """Cost of arriving on `lane` of the next edge: changes to its best lane, plus that
+        lane's cost onwards."""
+        if not cost_next:
+            return 0.0
+        return min(change_cost(lane, ln, length) + c for ln, c in cost_next.items())
+
+    def _smooth_curvature(self, half: float = 3.0) -> np.ndarray:
+        """Curvature from the heading change over +-half metres (robust to kinks between
+        SUMO's lane pieces)."""
+        n = len(self.xy)
+        if n < 3:
+            return np.zeros(n)
+        lo = np.searchsorted(self.s, self.s - half)
+        hi = np.minimum(np.searchsorted(self.s, self.s + half, side="right") - 1, n - 1)
+        lo = np.minimum(lo, n - 2)
+        hi = np.maximum(hi, lo + 1)
+        # heading unwrapped along the path
+        hu = np.unwrap(self.heading)
+        return (hu[hi] - hu[lo]) / np.maximum(self.s[hi] - self.s[lo], 1e-6)
+
+    def _find_crossings(self, sim) -> list[CrossingOnPath]:
+        out = []
+        seen = set()
+        for i, (lane, edge) in enumerate(self.lane_of):
+            if not lane.startswith(":") or lane in seen:
+                continue
+            seen.add(lane)
+            try:
+                foes = sim.lane.getInternalFoes(lane)
+            except Exception:
+                continue
+            for foe in foes:
+                m = CROSSING_RE.match(foe)
+                if not m or any(c.lane == foe for c in out):
+                    continue
+                shape = np.array(sim.lane.getShape(foe))
+                if len(shape) < 2:
+                    continue
+                # where the path meets the crossing (search around this junction lane)
+                idx = [k for k, (ln, _) in enumerate(self.lane_of) if ln == lane]
+                a0 = max(0, idx[0] - 25)
+                a1 = min(len(self.xy) - 1, idx[-1] + 25)
+                s_hit = None
+                for a in range(a0, a1):
+                    for b in range(len(shape) - 1):
+                        t = _segment_intersection(self.xy[a], self.xy[a + 1], shape[b], shape[b + 1])
+                        if t is not None:
+                            s_hit = float(self.s[a] + t * (self.s[a + 1] - self.s[a]))
+                            break
+                    if s_hit is not None:
+                        break
+                if s_hit is None:
+                    continue
+                out.append(CrossingOnPath(s=s_hit, edge=foe.rsplit("_", 1)[0], lane=foe,
+                                          width=float(sim.lane.getWidth(foe)), junction=m.group(1), shape=shape))
+        out.sort(key=lambda c: c.s)
+        return out
 
     @staticmethod
     def _cut_from(P, pos):
@@ -160,7 +491,16 @@ class LanePath:
         hi = min(len(self.xy), hint + window)
         seg = self.xy[lo:hi]
         d2 = (seg[:, 0] - x) ** 2 + (seg[:, 1] - y) ** 2
-        k = lo + int(np.argmin(d2))
+        # where the path passes the point more than once (a loop, a junction crossed twice),
+        # take the pass nearest the hint, then descend to its local minimum
+        dmin = math.sqrt(float(d2.min()))
+        cand = np.nonzero(d2 <= (dmin + 1.5) ** 2)[0]
+        j = int(cand[np.argmin(np.abs(cand + lo - hint))])
+        while j + 1 < len(d2) and d2[j + 1] < d2[j]:
+            j += 1
+        while j > 0 and d2[j - 1] < d2[j]:
+            j -= 1
+        k = lo + j
         # refine on the segment k..k+1 (or k-1..k)
         best = (k, self.s[k], 0.0)
         bestd = float("inf")
@@ -181,63 +521,189 @@ class LanePath:
                 best = (a, self.s[a] + t * math.sqrt(L2), math.copysign(dd, side))
         return best
 
+    def project_many(self, x: np.ndarray, y: np.ndarray, s0: float, s1: float) -> tuple[np.ndarray, np.ndarray]:
+        """Arc length and signed lateral offset (left +) of many points, each projected onto the
+        part of the path between arc lengths s0 and s1 (vectorised). Points that project onto
+        that part's ends get the end's s (and their true distance as offset)."""
+        x = np.asarray(x, dtype=float)
+        y = np.asarray(y, dtype=float)
+        i0 = max(0, int(np.searchsorted(self.s, s0)) - 1)
+        i1 = min(len(self.xy), int(np.searchsorted(self.s, s1, side="right")) + 1)
+        if len(x) == 0 or i1 - i0 < 2:
+            return np.full(len(x), np.nan), np.full(len(x), np.inf)
+        P = self.xy[i0:i1 - 1]
+        V = self.xy[i0 + 1:i1] - P
+        L2 = np.maximum((V ** 2).sum(1), 1e-12)
+        dx = x[:, None] - P[None, :, 0]
+        dy = y[:, None] - P[None, :, 1]
+        t = np.clip((dx * V[None, :, 0] + dy * V[None, :, 1]) / L2[None, :], 0.0, 1.0)
+        cx = dx - t * V[None, :, 0]
+        cy = dy - t * V[None, :, 1]
+        d2 = cx ** 2 + cy ** 2
+        j = np.argmin(d2, axis=1)
+        r = np.arange(len(x))
+        side = V[j, 0] * dy[r, j] - V[j, 1] * dx[r, j]
+        off = np.sqrt(d2[r, j]) * np.where(side >= 0, 1.0, -1.0)
+        s = self.s[i0 + j] + t[r, j] * np.sqrt(L2[j])
+        return s, off
+
+    def index_at(self, s: float) -> int:
+        return int(min(max(np.searchsorted(self.s, s, side="right") - 1, 0), len(self.s) - 1))
+
     def point_at(self, s: float) -> np.ndarray:
         s = min(max(s, 0.0), self.length)
         return np.array([np.interp(s, self.s, self.xy[:, 0]), np.interp(s, self.s, self.xy[:, 1])])
+
+    def heading_at(self, s: float) -> float:
+        return float(self.heading[self.index_at(s)])
+
+    def lanes_between(self, s0: float, s1: float) -> set:
+        i0, i1 = self.index_at(s0), self.index_at(s1)
+        return {self.lane_of[k][0] for k in range(i0, i1 + 1)}
 
     def max_curvature(self, s0: float, s1: float) -> float:
         m = (self.s >= s0) & (self.s <= s1)
         if not m.any():
             return 0.0
-        # smooth over ~5 m so single-point kinks do not dominate
-        k = np.abs(self.curvature[m])
-        if len(k) >= 5:
-            k = np.convolve(k, np.ones(5) / 5, mode="same")
-        return float(k.max())
+        return float(np.abs(self.curvature_smooth[m]).max())
 
 
 class PurePursuit:
-    """Steering towards a look-ahead point: curvature = 2 sin(alpha) / Ld."""
+    """Steering towards a look-ahead point: curvature = 2 sin(alpha) / Ld, from the rear axle.
 
-    def __init__(self, wheelbase: float, max_curvature: float, k_ld: float = 0.6, ld_min: float = 4.0,
-                 ld_max: float = 20.0):
+    ``cosim.vehicle``'s steering command is the rear-axle path curvature as a fraction of the
+    tightest one, so the command is ``kappa / kappa_max``. The look-ahead grows with speed
+    (``k_ld`` s) between ``ld_min`` and ``ld_max``."""
+
+    def __init__(self, wheelbase: float, max_curvature: float, k_ld: float = 0.9, ld_min: float = 4.0,
+                 ld_max: float = 25.0, rear_axle: float | None = None):
         self.wheelbase = wheelbase
         self.kmax = max_curvature
         self.k_ld, self.ld_min, self.ld_max = k_ld, ld_min, ld_max
+        self.rear = wheelbase / 2.0 if rear_axle is None else rear_axle   # centre -> rear axle
 
     def steer(self, path: LanePath, x, y, yaw, speed, s_here) -> tuple[float, float]:
+        c, s = math.cos(yaw), math.sin(yaw)
+        rx, ry = x - self.rear * c, y - self.rear * s
         ld = min(self.ld_max, max(self.ld_min, self.k_ld * abs(speed)))
-        tx, ty = path.point_at(s_here + ld)
-        alpha = math.atan2(ty - y, tx - x) - yaw
+        # the look-ahead point: ld from the rear axle, measured along the path from its projection
+        s_rear = s_here - self.rear
+        tx, ty = path.point_at(s_rear + ld)
+        dist = math.hypot(tx - rx, ty - ry)
+        if dist < 1e-3:
+            return 0.0, 0.0
+        alpha = math.atan2(ty - ry, tx - rx) - yaw
         alpha = math.atan2(math.sin(alpha), math.cos(alpha))
-        kappa = 2.0 * math.sin(alpha) / ld
+        kappa = 2.0 * math.sin(alpha) / dist
         return max(-1.0, min(1.0, kappa / self.kmax)), kappa
 
 
 class SpeedController:
-    """PI speed control to throttle/brake, with a feed-forward for slopes via the integral."""
+    """Target speed -> (throttle, brake) through the car's longitudinal force model plus PI.
 
-    def __init__(self, kp: float = 0.35, ki: float = 0.08, kb: float = 0.25, i_max: float = 0.6):
-        self.kp, self.ki, self.kb, self.i_max = kp, ki, kb, i_max
+    The wanted acceleration ``a = a_ff + kp e + ki integral(e)`` (clipped to ``a_min..a_max``)
+    becomes a wheel force ``F = m a + m g sin(grade) + Crr m g cos(grade) + drag``; a positive
+    force is throttle (the fraction of the drivetrain's torque / power limit at this speed), a
+    negative one brake (the fraction of the brakes' force). The grade comes from the chassis'
+    pitch; the integral absorbs what the model misses (suspension pitch, tyre losses, bumps).
+    """
+
+    def __init__(self, kp: float = 1.5, ki: float = 0.5, a_max: float = 2.0, a_min: float = -7.0,
+                 i_max: float = 1.0, i_band: float = 0.7, a_up: float = 1.8):
+        from . import vehicle as V
+
+        self.kp, self.ki, self.a_max, self.a_min, self.i_max = kp, ki, a_max, a_min, i_max
+        self.i_band = i_band
+        self.mass = V.MASS
+        self.g = V.GRAVITY
+        self.crr = V.ROLLING_RESISTANCE
+        self.drag = 0.5 * V.AIR_DENSITY * V.DRAG_AREA
+        self.r = V.WHEEL_RADIUS
+        self.t_max = V.MAX_WHEEL_TORQUE
+        self.p_max = V.MAX_POWER
+        self.brake_force = V.MAX_BRAKE_TORQUE / V.WHEEL_RADIUS
         self.i = 0.0
+        self.last_accel = 0.0
+        self.v_ref = None
+        self.a_up = a_up
 
     def reset(self):
         self.i = 0.0
+        self.v_ref = None
 
-    def control(self, v_target: float, v: float, dt: float) -> tuple[float, float]:
-        e = v_target - v
+    def drive_force_max(self, v: float) -> float:
+        return min(self.t_max, self.p_max * self.r / max(abs(v), 1e-3)) / self.r
+
+    def force_to_pedals(self, F: float, v: float) -> tuple[float, float]:
+        if F >= 0.0:
+            return min(1.0, max(1e-4, F / self.drive_force_max(v))), 0.0
+        return 0.0, min(1.0, -F / self.brake_force)
+
+    def control(self, v_target: float, v: float, dt: float, pitch: float = 0.0,
+                a_ff: float = 0.0) -> tuple[float, float]:
+        """Pedals for one step. ``pitch`` is the road's pitch under the car (rad, > 0 nose
+        down); ``a_ff`` a planned deceleration (<= 0) to follow, if any."""
         if v_target <= 0.05 and v < 0.5:
             self.i = 0.0
+            self.v_ref = None
+            self.last_accel = 0.0
             return 0.0, 1.0
-        self.i = max(-self.i_max, min(self.i_max, self.i + self.ki * e * dt))
-        u = self.kp * e + self.i
-        if u >= 0:
-            return min(1.0, u), 0.0
-        # coast for small negative errors, brake harder when far above target
-        brake = min(1.0, max(0.0, -u - 0.05) * self.kb / 0.25)
-        return 0.0, brake
+        # a reference speed that ramps up at a_up (the controller tracks it without overshoot)
+        # and follows the planner's target straight down
+        if self.v_ref is None or abs(self.v_ref - v) > 1.5:
+            self.v_ref = v
+        steady = False
+        if v_target > self.v_ref:
+            # ramp at a_up, easing off over the last a_up * 0.5 s of it
+            a_ref = self.a_up * min(1.0, (v_target - self.v_ref) / (self.a_up * 0.5))
+            self.v_ref = min(v_target, self.v_ref + a_ref * dt)
+        else:
+            steady = a_ff == 0.0 and self.v_ref - v_target < 0.05
+            self.v_ref = v_target
+            a_ref = min(0.0, a_ff)
+        e = self.v_ref - v
+        a = a_ref + self.kp * e + self.i
+        a_clip = min(self.a_max, max(self.a_min, a))
+        # integrate only on a steady reference, near it and when not saturated (no wind-up in
+        # transients: the model's feed-forward carries those)
+        if steady and abs(e) < self.i_band and (a == a_clip or (a > a_clip and e < 0) or (a < a_clip and e > 0)):
+            self.i = max(-self.i_max, min(self.i_max, self.i + self.ki * e * dt))
+        self.last_accel = a_clip
+        grade = -pitch                     # pitch > 0 is nose down (cosim.vehicle convention)
+        m, g = self.mass, self.g
+        F = m * a_clip + m * g * math.sin(grade) + self.crr * m * g * math.cos(grade) \
+            + self.drag * v * (1.0 + abs(v)) * (1.0 if v >= 0 else -1.0)
+        if a_clip < 0 and v < 0.3 and F < 0:
+            return 0.0, min(1.0, max(0.3, -F / self.brake_force))
+        return self.force_to_pedals(F, v)
 
 
 def curve_speed(kappa: float, a_lat: float = 2.5) -> float:
     """Highest speed for a curvature at a comfortable lateral acceleration."""
     return math.sqrt(a_lat / max(abs(kappa), 1e-6))
+
+
+def stop_speed(d: float, decel: float = 2.5, tail: float = 0.8) -> float:
+    """Speed from which the car stops in ``d`` metres at ``decel``, tapering linearly
+    (``tail`` m/s per m) over the last metres so the stop is gentle and precise."""
+    if d <= 0.15:
+        return 0.0
+    return min(math.sqrt(2.0 * decel * d), tail * d + 0.2)
+
+
+def plan_speed(path: LanePath, s_here: float, v_cap: float, horizon: float, decel: float = 2.0,
+               a_lat: float = 2.5, speed_limit: bool = False) -> tuple[float, float]:
+    """Highest speed now such that, braking at ``decel``, the car meets every point's limit
+    ahead (curvature, and the lane's speed limit when ``speed_limit``) within ``horizon`` m.
+    Returns (speed, arc length of the binding point)."""
+    i0 = path.index_at(s_here - 1.0)
+    i1 = path.index_at(s_here + horizon) + 1
+    k = np.abs(path.curvature_smooth[i0:i1])
+    v_allow = np.sqrt(a_lat / np.maximum(k, 1e-6))
+    v_allow = np.minimum(v_allow, v_cap)
+    if speed_limit:
+        v_allow = np.minimum(v_allow, path.max_speed[i0:i1])
+    d = np.maximum(path.s[i0:i1] - s_here, 0.0)
+    v = np.sqrt(v_allow ** 2 + 2.0 * decel * d)
+    j = int(np.argmin(v))
+    return float(v[j]), float(path.s[i0 + j])

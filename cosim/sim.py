@@ -365,7 +365,7 @@ class Simulation:
             self.route = self.route[-1:] + more[1:]
         try:
             s = self.traffic.sumo
-            self.path = LanePath(s, self.route, start_lane=lane if not lane.startswith(":") else None)
+            self.path = self.path.extended(s, more)     # keeps the geometry the car is on
             self._path_idx = self.path.project(st.x, st.y, 0, window=len(self.path.xy))[0]
         except (ValueError, CosimError) as e:
             log.info("could not extend the route: %s", e)
