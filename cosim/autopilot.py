@@ -146,6 +146,7 @@ class Autopilot:
         self._foes: dict = {}
         self._internal_foes: dict = {}
         self._internal_foes_all: dict = {}
+        self._net_generation = getattr(getattr(sim, "traffic", None), "_generation", 0)
         self._near_miss_until = -1.0
         self._moving = False
         self._prev_target = None
@@ -158,6 +159,14 @@ class Autopilot:
     def control(self, st, s_here: float, actors, dt: float):
         sim = self.sim
         path = sim.path
+        gen = getattr(getattr(sim, "traffic", None), "_generation", 0)
+        if gen != self._net_generation:         # SUMO moved to another network (world streaming)
+            self._net_generation = gen
+            self._incoming = None
+            self._foes, self._internal_foes, self._internal_foes_all = {}, {}, {}
+            self._stop_state.clear()
+            self._yellow.clear()
+            self._path = None
         if path is not self._path:
             self._new_path(path)
         self._st, self._s_here = st, s_here
@@ -400,8 +409,14 @@ class Autopilot:
         tr = getattr(self.sim, "traffic", None)
         if tr is None:
             return None
+        if not getattr(tr, "_ego_in_sim", False) or getattr(tr, "_ego_off_network", False):
+            return None
         try:
             s = tr.sumo
+            # only for an ego on a lane (libsumo's getLeader is not safe for a vehicle that
+            # moveToXY left off the network)
+            if not s.vehicle.getLaneID("ego"):
+                return None
             res = s.vehicle.getLeader("ego", SENSE_RANGE_M)
             if not res or not res[0]:
                 return None

@@ -221,6 +221,7 @@ class LanePath:
 
     def __init__(self, sim, edges: list[str], start_lane: str | None = None, start_pos: float = 0.0):
         self.edges, self.detours = without_turnarounds(sim, list(edges))
+        self._stay_in_start_lane(sim, start_lane, start_pos)
         pts, lanes = [], []
         # which lane to be on at each edge: one with a link to the next edge, chosen by a
         # backward pass that minimises lane changes, cheaper on long edges (a change on a
@@ -397,6 +398,31 @@ class LanePath:
         new.last_lane = tail.last_lane
         new.last_edge_start = (i1 - i0) + tail.last_edge_start
         return new
+
+    def _stay_in_start_lane(self, sim, start_lane, start_pos, min_change_m: float = 40.0):
+        """A route that needs another lane than the car's within a few metres (a start or a
+        re-plan at a stop line, in a turning lane) would be a sideways jump: follow one of the
+        start lane's own links instead and route from there to the same destination."""
+        edges = self.edges
+        if not start_lane or len(edges) < 2 or start_lane.rsplit("_", 1)[0] != edges[0]:
+            return
+        try:
+            links = sim.lane.getLinks(start_lane)
+            remaining = float(sim.lane.getLength(start_lane)) - float(start_pos)
+        except Exception:
+            return
+        if remaining >= min_change_m or any(l[0].rsplit("_", 1)[0] == edges[1] for l in links):
+            return
+        order = {"s": 0, "r": 1, "l": 2, "R": 1, "L": 2}
+        for link in sorted(links, key=lambda l: order.get(l[6], 3)):
+            if link[6] == "t" or not _lane_allows(sim, link[0]):
+                continue
+            first = link[0].rsplit("_", 1)[0]
+            alt = [first] if first == edges[-1] else route_without_turnarounds(sim, first, edges[-1])
+            if alt:
+                self.detours.append((edges[0], edges[1], len(alt)))
+                self.edges = [edges[0]] + alt
+                return
 
     @staticmethod
     def _enter_cost(lane, cost_next: dict, length: float, change_cost) -> float:

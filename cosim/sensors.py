@@ -5,12 +5,15 @@ with the car) over ``±fov/2`` from the middle of the front bumper at ``height``
 road, ``range_m`` long, in one ``rayTestBatch``. The ego's own chassis is excluded through
 its collision group (``cosim.vehicle.CHASSIS_COLLISION_GROUP``; the wheel links collide with
 nothing). A :class:`LidarScan` gives per ray the distance (``range_m`` when nothing was hit),
-the body id hit (-1 for none), the hit point and the surface normal.
+the body id hit (-1 for none), the hit point, the surface normal, and the height of the hit
+above the surface under it (a second batch of short vertical rays, one per hit).
 
 :func:`corridor_obstacle` keeps the hits that lie in the path corridor ahead (within half the
 car's width plus a margin of the path's centreline) and are obstacles rather than the road
-itself (a ray meets the road ahead where the street sags: such hits have a surface normal
-close to vertical), and returns the nearest one as a gap along the path from the bumper.
+itself (a ray meets the road where the street rises ahead, or a kerb, or a seam of the road
+mesh: such hits have a surface normal close to vertical or stand only centimetres above the
+surface under them), and returns the nearest one as a gap along the path from the bumper.
+The autopilot maps hit body ids to SUMO actors through ``ActorMirror.active``.
 """
 from __future__ import annotations
 
