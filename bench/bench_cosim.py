@@ -59,8 +59,9 @@ def sumo_alone(net, routes, seconds, seed, warm):
     return seconds / wall, statistics.mean(actors)
 
 
-def cosim(world, traffic, seconds, seed, warm, speed):
-    cfg = SimConfig(world_dir=str(world), traffic=traffic, seed=seed, speed_mps=speed, duration_s=warm + seconds)
+def cosim(world, traffic, seconds, seed, warm, speed, parallel):
+    cfg = SimConfig(world_dir=str(world), traffic=traffic, seed=seed, speed_mps=speed, duration_s=warm + seconds,
+                    parallel_sumo=parallel)
     sim = Simulation(cfg).setup()
     try:
         for _ in range(int(warm / 0.1)):
@@ -117,6 +118,8 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--speed", type=float, default=12.0)
     ap.add_argument("--soak-minutes", type=float, default=0.0)
+    ap.add_argument("--mode", choices=["both", "serial", "pipelined"], default="both",
+                    help="SUMO in-process (serial) and/or in a worker process stepping beside the physics")
     ap.add_argument("--out", default=str(REPO / "bench" / "results" / "worlds"))
     a = ap.parse_args(argv)
     out = Path(a.out) / a.preset
@@ -130,18 +133,21 @@ def main(argv=None):
                         duration=a.warm + a.seconds + 60.0)
     print(f"== {a.preset}, traffic {a.traffic}, seed {a.seed}: {a.warm:.0f} s warm-up, {a.seconds:.0f} s measured")
     rtf_sumo, actors = sumo_alone(world / w["net_file"], d.route_files, a.seconds, a.seed, a.warm)
-    rtf_co, s, f, ld = cosim(world, a.traffic, a.seconds, a.seed, a.warm, a.speed)
-    print(f"   SUMO alone      : x{rtf_sumo:6.1f} real time, {actors:.0f} actors in the simulation")
-    print(f"   co-simulation   : x{rtf_co:6.1f} real time, {s.max_vehicles} vehicles + {s.max_persons} persons, "
-          f"{s.max_mirrored} mirrored at most")
-    print(f"   ratio co-sim / SUMO alone: {rtf_co / rtf_sumo:.2f}  (goal >= 0.7; and >= 20x real time)")
-    print(f"   frame ms: median {np.median(f):.2f}, p99 {np.percentile(f, 99):.2f}, p99.9 {np.percentile(f, 99.9):.2f} "
-          f"({np.percentile(f, 99.9) / np.median(f):.2f} x median; goal <= 2), max {f.max():.2f}")
-    if ld.any():
-        print(f"   frames with tile loads: {ld.sum()}, their max {f[ld].max():.2f} ms (goal <= 50); "
-              f"without loads p99.9 {np.percentile(f[~ld], 99.9):.2f} ms")
-    print(f"   {s.line()}")
-
+    print(f"   SUMO alone      : x{rtf_sumo:6.1f} real time, {actors:.0f} actors in the simulation "
+          f"(load average {os.getloadavg()[0]:.2f})")
+    modes = [("serial", False), ("pipelined", True)] if a.mode == "both" else [(a.mode, a.mode == "pipelined")]
+    for name, parallel in modes:
+        rtf_co, s, f, ld = cosim(world, a.traffic, a.seconds, a.seed, a.warm, a.speed, parallel)
+        print(f"   co-sim {name:9s}: x{rtf_co:6.1f} real time, {s.max_vehicles} vehicles + {s.max_persons} persons, "
+              f"{s.max_mirrored} mirrored at most  (load average {os.getloadavg()[0]:.2f})")
+        print(f"      ratio co-sim / SUMO alone: {rtf_co / rtf_sumo:.2f}  (goal >= 0.7; and >= 20x real time)")
+        print(f"      frame ms: median {np.median(f):.2f}, p99 {np.percentile(f, 99):.2f}, p99.9 "
+              f"{np.percentile(f, 99.9):.2f} ({np.percentile(f, 99.9) / np.median(f):.2f} x median; goal <= 2), "
+              f"max {f.max():.2f}")
+        if ld.any():
+            print(f"      frames with tile loads: {ld.sum()}, their max {f[ld].max():.2f} ms (goal <= 50); "
+                  f"without loads p99.9 {np.percentile(f[~ld], 99.9):.2f} ms")
+        print(f"      {s.line()}")
 
 if __name__ == "__main__":
     main()

@@ -363,10 +363,14 @@ class Autopilot:
                     foes = self._foe_lanes(path, s_here)
                     mine = path.lanes_between(s_here - 5.0, s_here + SENSE_RANGE_M)
                     my_edges = {ln.rsplit("_", 1)[0] for ln in mine}
-                try:
-                    lane = tr.sumo.vehicle.getLaneID(str(actors.ids[i]))
-                except Exception:
-                    lane = None
+                lanes = getattr(actors, "lane", None)
+                if lanes is not None:
+                    lane = lanes[i] or None     # from the step's context subscription
+                else:
+                    try:
+                        lane = tr.sumo.vehicle.getLaneID(str(actors.ids[i]))
+                    except Exception:
+                        lane = None
                 if lane:
                     on_path = lane in mine or lane.rsplit("_", 1)[0] in my_edges
                     if lane in foes and not on_path:

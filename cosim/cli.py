@@ -182,7 +182,7 @@ def sim_config_from_args(a):
         cfg.world_dir = a.world
     for k_arg, k_cfg in (("duration", "duration_s"), ("speed", "speed_mps"), ("traffic", "traffic"),
                          ("seed", "seed"), ("telemetry", "telemetry"), ("sensor_range", "sensor_range_m"),
-                         ("backend", "backend")):
+                         ("backend", "backend"), ("parallel_sumo", "parallel_sumo")):
         v = getattr(a, k_arg)
         if v is not None:
             setattr(cfg, k_cfg, v)
@@ -295,6 +295,9 @@ def make_parser() -> argparse.ArgumentParser:
     g.add_argument("--gui", action="store_true", help="PyBullet's 3D window with a chase camera (needs a display)")
     g.add_argument("--sumo-gui", action="store_true", help="run SUMO in sumo-gui (TraCI backend)")
     g.add_argument("--backend", choices=["libsumo", "traci"], help="SUMO API (default libsumo)")
+    g.add_argument("--parallel-sumo", action=argparse.BooleanOptionalAction, default=None,
+                   help="run libsumo in a worker process that steps while the physics runs "
+                        "(default: on with 2 or more CPUs)")
     g.add_argument("--json", action="store_true", help="print the summary as JSON")
     g.add_argument("-q", "--quiet", action="store_true")
     g.add_argument("-v", "--verbose", action="store_true")

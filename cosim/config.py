@@ -44,6 +44,8 @@ class SimConfig:
     traffic: str | float = "normal"
     seed: int = 0
     backend: str = "libsumo"              # or "traci" (needed for sumo-gui)
+    # libsumo in a worker process, stepping while the physics runs (None: when >= 2 CPUs)
+    parallel_sumo: bool | None = None
     sumo_gui: bool = False
     # ego
     start: tuple[float, float] | None = None
@@ -118,6 +120,7 @@ class SimConfig:
         e = d.get("ego", {})
         r = d.get("run", {})
         mapping = {"density": "traffic", "seed": "seed", "backend": "backend", "sumo_gui": "sumo_gui",
+                   "parallel_sumo": "parallel_sumo",
                    "start": "start", "goal": "goal", "speed_mps": "speed_mps",
                    "respect_speed_limit": "respect_speed_limit", "max_snap_m": "max_snap_m",
                    "duration_s": "duration_s", "step_length_s": "step_length_s", "physics_hz": "physics_hz",

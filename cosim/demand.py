@@ -211,7 +211,8 @@ def generate_demand(net_file, out_dir, density="normal", seed: int = 0,
     Returns a :class:`Demand`; raises :class:`BuildError` (one line) when randomTrips fails or
     no vehicle trip could be routed, :class:`InputError` for a bad density/duration.
     """
-    net_file = Path(net_file)
+    net_file = Path(net_file).absolute()     # randomTrips runs in its own working folder
+    out_dir = Path(out_dir).absolute()
     if not net_file.is_file():
         raise BuildError(f"SUMO network {net_file} does not exist")
     try:

@@ -121,6 +121,7 @@ class Simulation:
         self.collision_log: list = []
         self.keyboard = None               # a cosim.keyboard.KeyboardControl when keys drive
         self.streamer = None
+        self._pipelined = False            # SUMO in a worker process (cosim.sumo_process)
         self._setup_done = False
 
     # ------------------------------------------------------------------------------------
@@ -140,9 +141,13 @@ class Simulation:
             demand = generate_demand(self.world.net_file, self.world.path / "traffic", density=cfg.traffic,
                                      seed=cfg.seed, duration=max(cfg.duration_s, 60.0) + 60.0)
             self.progress("sumo", 0.0, "starting SUMO")
-            self.traffic = SumoTraffic(self.world.net_file, demand.route_files, step_length=cfg.step_length_s,
-                                       seed=cfg.seed, backend=cfg.backend, gui=cfg.sumo_gui)
+            kind = SumoTraffic
+            if self.parallel_sumo:
+                from .sumo_process import TrafficProcess as kind
+            self.traffic = kind(self.world.net_file, demand.route_files, step_length=cfg.step_length_s,
+                                seed=cfg.seed, backend=cfg.backend, gui=cfg.sumo_gui)
             self.traffic.setup()
+            self._pipelined = kind is not SumoTraffic
             self.progress("physics", 0.0, "loading the physics world")
             hz = cfg.physics_hz or RECOMMENDED_PHYSICS_HZ
             self.substeps = max(1, int(round(cfg.step_length_s * hz)))
@@ -177,6 +182,16 @@ class Simulation:
         self._setup_done = True
         self.progress("run", 0.0, "running")
         return self
+
+    @property
+    def parallel_sumo(self) -> bool:
+        """SUMO runs in a worker process and steps while the physics runs (libsumo only)."""
+        from .sumo_process import available_cpus
+
+        p = self.cfg.parallel_sumo
+        if p is None:
+            p = available_cpus() >= 2
+        return bool(p) and self.cfg.backend == "libsumo"
 
     @property
     def keep_radius(self) -> float:
@@ -291,10 +306,13 @@ class Simulation:
         t0 = time.perf_counter()
         cfg = self.cfg
         st = self.vehicle.state()
-        self.traffic.set_ego_pose(st.x, st.y, st.yaw, max(0.0, st.speed))
-        self.traffic.step()
-        self.t += cfg.step_length_s
+        pipelined = self._pipelined
+        if not pipelined:
+            self.traffic.set_ego_pose(st.x, st.y, st.yaw, max(0.0, st.speed))
+            self.traffic.step()
+        # pipelined: SUMO's state after the step sent in the previous frame (waits for it)
         snap = self.traffic.actors_near(st.x, st.y, cfg.mirror_radius_m)
+        self.t += cfg.step_length_s
         self.last_snapshot = snap
         self.mirror.update(snap, ego=(st.x, st.y, st.yaw, self.vehicle.spec.length, self.vehicle.spec.width))
         # driving
@@ -311,6 +329,11 @@ class Simulation:
         else:
             throttle, brake, steer = self.driver.control(st, s_here, snap, cfg.step_length_s)
         self.last_control = (throttle, brake, steer)
+        if pipelined:
+            # SUMO steps in its worker process while the physics below runs (nothing from
+            # here to the end of the frame waits for SUMO, except a network swap)
+            self.traffic.set_ego_pose(st.x, st.y, st.yaw, max(0.0, st.speed))
+            self.traffic.step()
         self.vehicle.apply_control(throttle, brake, steer)
         self.vehicle.step(self.substeps)
         self._check_collisions()
@@ -396,7 +419,7 @@ class Simulation:
 
     def _telemetry(self, ego: EgoState, snap, frame_ms):
         v, p = self.mirror.counts()
-        ts = self.traffic.stats
+        ts = self.traffic.stats_nowait if self._pipelined else self.traffic.stats
         s = self.summary
         s.max_vehicles = max(s.max_vehicles, ts.vehicles)
         s.max_persons = max(s.max_persons, ts.persons)
@@ -548,6 +571,8 @@ class Simulation:
         if self.physics is not None:
             s.tiles_loaded, s.tiles_unloaded = self.physics.loads, self.physics.unloads
         if self.traffic is not None:
+            if self._pipelined:
+                self.traffic.sync()
             s.sumo_collisions, s.sumo_teleports = self.traffic.stats.collisions, self.traffic.stats.teleports
         s.chunks_visited = len(self._chunks_seen)
         if self._frame_ms:

@@ -135,6 +135,7 @@ class ActorsSnapshot:
     height: np.ndarray
     speed: np.ndarray      # m/s
     slope: np.ndarray      # degrees, positive uphill (pitch)
+    lane: np.ndarray | None = None   # str: SUMO lane id of a vehicle ("" for persons); None: unknown
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -142,6 +143,14 @@ class ActorsSnapshot:
     @property
     def is_person(self) -> np.ndarray:
         return self.kind == "person"
+
+    def within(self, x: float, y: float, radius: float) -> "ActorsSnapshot":
+        """The actors whose centre is within ``radius`` of (x, y)."""
+        keep = np.hypot(self.x - x, self.y - y) <= radius
+        return ActorsSnapshot(self.time, self.ids[keep], self.kind[keep], self.x[keep], self.y[keep],
+                              self.yaw[keep], self.length[keep], self.width[keep], self.height[keep],
+                              self.speed[keep], self.slope[keep],
+                              None if self.lane is None else self.lane[keep])
 
     def index(self, actor_id: str) -> int:
         hits = np.nonzero(self.ids == actor_id)[0]
@@ -153,7 +162,7 @@ class ActorsSnapshot:
     def empty(cls, time: float = 0.0) -> "ActorsSnapshot":
         z = np.zeros(0)
         return cls(time, np.zeros(0, dtype=object), np.zeros(0, dtype=object), z, z.copy(),
-                   z.copy(), z.copy(), z.copy(), z.copy(), z.copy(), z.copy())
+                   z.copy(), z.copy(), z.copy(), z.copy(), z.copy(), z.copy(), np.zeros(0, dtype=object))
 
 
 @dataclass
@@ -598,7 +607,7 @@ class SumoTraffic:
     def _vehicle_vars(self):
         tc = self._tc
         return [tc.VAR_POSITION, tc.VAR_ANGLE, tc.VAR_SPEED, tc.VAR_VEHICLECLASS, tc.VAR_LENGTH,
-                tc.VAR_WIDTH, tc.VAR_HEIGHT, tc.VAR_SLOPE]
+                tc.VAR_WIDTH, tc.VAR_HEIGHT, tc.VAR_SLOPE, tc.VAR_LANE_ID]
 
     def _person_vars(self):
         tc = self._tc
@@ -693,6 +702,7 @@ class SumoTraffic:
         n = len(res)
         ids = np.empty(n, dtype=object)
         kind = np.empty(n, dtype=object)
+        lanes = np.empty(n, dtype=object)
         a = np.zeros((8, n))
         k = 0
         for aid, v in res.items():
@@ -702,22 +712,24 @@ class SumoTraffic:
                 if v[tc.VAR_VEHICLE]:
                     continue                 # riding: drawn as part of the vehicle
                 kind[k] = "person"
+                lanes[k] = ""
                 length, width, height = self._type_dims(v[tc.VAR_TYPE])
             else:
                 kind[k] = v.get(tc.VAR_VEHICLECLASS, "passenger")
+                lanes[k] = v.get(tc.VAR_LANE_ID, "")
                 length, width, height = v[tc.VAR_LENGTH], v[tc.VAR_WIDTH], v[tc.VAR_HEIGHT]
             ids[k] = aid
             px, py = v[tc.VAR_POSITION][:2]
             a[:, k] = (px, py, v[tc.VAR_ANGLE], length, width, height, v[tc.VAR_SPEED],
                        v.get(tc.VAR_SLOPE, 0.0))
             k += 1
-        ids, kind, a = ids[:k], kind[:k], a[:, :k]
+        ids, kind, lanes, a = ids[:k], kind[:k], lanes[:k], a[:, :k]
         cx, cy = front_to_center(a[0], a[1], a[2], a[3])
         cx, cy = np.atleast_1d(cx), np.atleast_1d(cy)
         keep = np.hypot(cx - x, cy - y) <= radius
         return ActorsSnapshot(self.sim_time, ids[keep], kind[keep], cx[keep], cy[keep],
                               np.atleast_1d(sumo_angle_to_yaw(a[2]))[keep], a[3][keep], a[4][keep],
-                              a[5][keep], a[6][keep], a[7][keep])
+                              a[5][keep], a[6][keep], a[7][keep], lanes[keep])
 
     def actors_near_getters(self, x: float, y: float, radius: float) -> ActorsSnapshot:
         """Same result as :meth:`actors_near` with per-actor getter calls (reference/benchmark)."""

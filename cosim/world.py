@@ -19,7 +19,7 @@ from netgen.terrain import TerrainGrid
 
 class World:
     def __init__(self, path: str | Path):
-        self.path = Path(path)
+        self.path = Path(path).absolute()
         wj = self.path / "world.json"
         if not wj.exists():
             raise DataError(f"no world at {self.path} (world.json missing): build one with `cosim build`")

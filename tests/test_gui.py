@@ -84,8 +84,9 @@ def libsumo_running() -> bool:
     import libsumo
 
     import cosim.traffic as tr
+    from cosim.sumo_process import live_workers
 
-    return tr._LIBSUMO_OWNER is not None or libsumo.simulation.isLoaded()
+    return tr._LIBSUMO_OWNER is not None or libsumo.simulation.isLoaded() or bool(live_workers())
 
 
 def pybullet_connected(client) -> bool:

@@ -30,36 +30,47 @@ def motorway_world(tmp_path_factory):
     return out
 
 
-def test_drive_across_a_chunk_border_with_traffic(motorway_world, tmp_path):
+@pytest.mark.parametrize("parallel", [True, False], ids=["sumo-worker-process", "sumo-in-process"])
+def test_drive_across_a_chunk_border_with_traffic(motorway_world, tmp_path, parallel):
     tel = tmp_path / "run.jsonl"
     cfg = SimConfig(world_dir=str(motorway_world), traffic="light", seed=3, speed_mps=25.0, duration_s=70.0,
-                    telemetry=str(tel))
+                    telemetry=str(tel), parallel_sumo=parallel)
     sim = Simulation(cfg).setup()
+    assert sim._pipelined == parallel
     mirror_checked = 0
     try:
         sumo = sim.traffic.sumo
-        for _ in range(int(70 / 0.1)):
-            sim.step()
-            # mirrored bodies against SUMO's own getters (an independent conversion)
+        send_step = sim.traffic.step
+
+        def check_then_step():
+            # right before SUMO is stepped, SUMO's state is the one the mirror shows (in both
+            # modes): mirrored bodies against SUMO's own getters (an independent conversion)
+            nonlocal mirror_checked
             snap = sim.last_snapshot
-            for k in range(min(len(snap), 5)):
-                aid = snap.ids[k]
-                if snap.kind[k] == "person" or aid not in sumo.vehicle.getIDList():
-                    continue
-                body = sim.mirror.body_of(aid)
-                if body is None:
-                    continue
-                fx, fy = sumo.vehicle.getPosition(aid)
-                ang = sumo.vehicle.getAngle(aid)
-                cx, cy = front_to_center(fx, fy, ang, sumo.vehicle.getLength(aid))
-                (bx, by, bz), q = pb.getBasePositionAndOrientation(body, physicsClientId=sim.physics.client)
-                yaw = pb.getEulerFromQuaternion(q)[2]
-                if sim.mirror.held == 0:
+            if snap is not None and sim.mirror.held == 0:
+                ids = sumo.vehicle.getIDList()
+                for k in range(min(len(snap), 5)):
+                    aid = snap.ids[k]
+                    if snap.kind[k] == "person" or aid not in ids:
+                        continue
+                    body = sim.mirror.body_of(aid)
+                    if body is None:
+                        continue
+                    fx, fy = sumo.vehicle.getPosition(aid)
+                    ang = sumo.vehicle.getAngle(aid)
+                    cx, cy = front_to_center(fx, fy, ang, sumo.vehicle.getLength(aid))
+                    (bx, by, bz), q = pb.getBasePositionAndOrientation(body, physicsClientId=sim.physics.client)
+                    yaw = pb.getEulerFromQuaternion(q)[2]
                     assert math.hypot(bx - cx, by - cy) < 0.05
                     assert abs(math.remainder(yaw - sumo_angle_to_yaw(ang), 2 * math.pi)) < 0.01
                     gz = float(sim.world.ground_z(cx, cy)[0])
                     assert abs(bz - sumo.vehicle.getHeight(aid) / 2 - gz) < 0.3
-                mirror_checked += 1
+                    mirror_checked += 1
+            send_step()
+
+        sim.traffic.step = check_then_step
+        for _ in range(int(70 / 0.1)):
+            sim.step()
         # the ego is in SUMO where physics has it
         eg = sim.traffic.ego_state()
         st = sim.vehicle.state()

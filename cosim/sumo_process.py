@@ -1,0 +1,481 @@
+"""SUMO in a worker process, stepped while the physics runs (the pipelined co-simulation).
+
+libsumo holds Python's GIL for a whole ``simulationStep`` (a thread does not overlap it with
+anything), and SUMO's step is the largest single cost of a frame. ``TrafficProcess`` runs a
+:class:`cosim.traffic.SumoTraffic` in a spawned worker process and forwards calls to it over
+a pipe, with one difference: :meth:`TrafficProcess.step` only *sends* the request and returns,
+so SUMO computes its next step on the second core while the main process steps PyBullet, the
+car and the sensors. The next call of anything waits for that step to finish first (the pipe
+keeps the order), so the loop sees the same sequence of states as with an in-process SUMO;
+the only change is that the ego pose SUMO steps with is the one sent before the physics of
+the same frame (SUMO sees the car one step, 0.1 s, later than in the serial loop).
+
+Everything else goes through generic proxies: ``traffic.sumo.vehicle.getLeader("ego", 80)``
+is one round trip (about 30-60 us), ``traffic.actors_near(...)`` another. Answers that depend
+only on the network (lane shapes, links, junction foes; see ``_STATIC``) are cached in the main
+process until the network changes (``swap_network``). A few attributes the loop reads every
+frame (``stats``, ``sim_time``, ``_generation``, ...) come back with every answer and are read
+locally once the answers in flight are in (``stats_nowait`` does not wait: the loop's
+telemetry reads it while SUMO steps).
+
+SUMO errors come back as the same one-line ``SimulationError`` as in-process; a worker that
+dies (libsumo can segfault on some inputs) is reported as a one-line error with its exit code.
+Log records of the worker (teleports, collisions, warnings) are re-emitted in the main process.
+"""
+from __future__ import annotations
+
+import inspect
+import logging
+import math
+import os
+import pickle
+import socket
+import subprocess
+import sys
+import types
+import weakref
+from multiprocessing.connection import Connection
+from pathlib import Path
+
+from netgen.errors import SimulationError
+
+log = logging.getLogger(__name__)
+
+# attributes shipped with every answer, read locally
+_STATE = ("stats", "sim_time", "running", "_generation", "_ego_in_sim", "_ego_off_network",
+          "_ego_added")
+# libsumo calls whose answers depend only on the network: cached per network generation
+_STATIC = {
+    # (not lane.getLinks: its tuples carry the links' current light states)
+    ("sumo", "lane", n) for n in ("getShape", "getLength", "getInternalFoes", "getIDList",
+                                  "getEdgeID", "getAllowed", "getDisallowed", "getWidth", "getLinkNumber",
+                                  "getFoes")
+} | {
+    ("sumo", "edge", n) for n in ("getLaneNumber", "getIDList", "getStreetName", "getFromJunction",
+                                  "getToJunction")
+} | {
+    ("sumo", "junction", n) for n in ("getIncomingEdges", "getOutgoingEdges", "getPosition", "getShape",
+                                      "getIDList")
+} | {
+    ("sumo", "trafficlight", n) for n in ("getControlledLinks", "getControlledLanes", "getIDList")
+}
+
+
+PREFETCH_KEEP = 3        # steps a read is asked for again after the caller last made it
+ACTORS_MARGIN_M = 10.0   # the actors sent with a step cover the radius asked for + this
+
+
+def _is_read(path) -> bool:
+    """A call that only reads SUMO's state (safe to answer from the step's prefetch)."""
+    name = path[-1]
+    return name.startswith(("get", "is", "has")) or name in ("actors_near", "tls_states", "ego_state",
+                                                               "ego_next_tls")
+
+
+_WORKERS: "weakref.WeakSet[TrafficProcess]" = weakref.WeakSet()
+
+
+def live_workers() -> list[int]:
+    """Process ids of the SUMO worker processes this process runs now."""
+    return [t._proc.pid for t in list(_WORKERS) if t._proc is not None and t._proc.poll() is None]
+
+
+def available_cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+# --- the worker -----------------------------------------------------------------------------
+class _LogForward(logging.Handler):
+    def __init__(self):
+        super().__init__()
+        self.records: list = []
+
+    def emit(self, record):
+        try:
+            self.records.append((record.name, record.levelno, record.getMessage()))
+        except Exception:
+            pass
+
+
+def _portable(value, depth: int = 0):
+    """``value`` if it pickles, else the same shape with SWIG objects (libsumo's TraCIStage,
+    TraCICollision, ...) turned into namespaces of their public data attributes."""
+    try:
+        pickle.dumps(value)
+        return value
+    except Exception:
+        pass
+    if depth > 4:
+        return repr(value)
+    if isinstance(value, (list, tuple)):
+        return type(value)(_portable(v, depth + 1) for v in value)
+    if isinstance(value, dict):
+        return {k: _portable(v, depth + 1) for k, v in value.items()}
+    ns = types.SimpleNamespace()
+    for k in dir(value):
+        if k.startswith("_"):
+            continue
+        try:
+            v = getattr(value, k)
+        except Exception:
+            continue
+        if callable(v):
+            continue
+        setattr(ns, k, _portable(v, depth + 1))
+    return ns
+
+
+def _portable_error(e: BaseException) -> BaseException:
+    if isinstance(e, SimulationError):
+        return e
+    try:
+        pickle.loads(pickle.dumps(e))
+        return e
+    except Exception:
+        return SimulationError(f"{type(e).__name__}: {e}")
+
+
+def _state(t) -> dict:
+    out = {}
+    for k in _STATE:
+        try:
+            v = getattr(t, k)
+        except Exception:
+            continue
+        if k == "stats":
+            v = type(v)(**{f: getattr(v, f) for f in ("steps", "vehicles", "persons", "teleports",
+                                                     "collisions", "max_vehicles", "max_persons")})
+        out[k] = v
+    return out
+
+
+def _serve(conn):
+    """Worker main loop: one SumoTraffic, requests answered in order."""
+    from cosim.traffic import SumoTraffic
+
+    args, kwargs, log_level = conn.recv()
+
+    fwd = _LogForward()
+    root = logging.getLogger("cosim")
+    root.addHandler(fwd)
+    root.setLevel(log_level)
+    root.propagate = False
+    t = SumoTraffic(*args, **kwargs)
+    while True:
+        try:
+            op, path, a, kw = conn.recv()
+        except (EOFError, OSError, KeyboardInterrupt):
+            break
+        if op == "exit":
+            break
+        status, value = "ok", None
+        try:
+            if op == "step":
+                t.step()
+                status, value = "step", {}
+                for key in path:               # reads the caller will make: answered now
+                    try:
+                        obj = t
+                        for name in key[0]:
+                            obj = getattr(obj, name)
+                        value[key] = ("ok", _portable(obj(*key[1])))
+                    except BaseException as e:  # noqa: BLE001
+                        value[key] = ("err", _portable_error(e))
+            else:
+                obj = t
+                for name in path:
+                    obj = getattr(obj, name)
+                if op == "call":
+                    value = _portable(obj(*a, **kw))
+                elif inspect.ismodule(obj) or inspect.isclass(obj):
+                    status = "obj"
+                elif callable(obj):
+                    status = "call"
+                else:
+                    value = _portable(obj)
+        except BaseException as e:  # noqa: BLE001 - everything goes back to the caller
+            status, value = "err", _portable_error(e)
+        records, fwd.records = fwd.records, []
+        try:
+            conn.send((status, value, _state(t), records))
+        except (EOFError, OSError, BrokenPipeError):
+            break
+    try:
+        t.teardown()
+    except Exception:
+        pass
+    conn.close()
+
+
+# --- the main-process side ------------------------------------------------------------------
+class _Remote:
+    """A proxy for an object (module, class) inside the worker: attribute access and calls."""
+    __slots__ = ("_tp", "_path")
+
+    def __init__(self, tp, path):
+        self._tp = tp
+        self._path = path
+
+    def __getattr__(self, name):
+        return self._tp._resolve(self._path + (name,))
+
+    def __call__(self, *args, **kwargs):
+        return self._tp._call(self._path, args, kwargs)
+
+    def __repr__(self):
+        return f"<remote {'.'.join(self._path)} in SUMO's worker process>"
+
+
+class TrafficProcess:
+    """A ``SumoTraffic`` (same constructor, same methods) in a worker process; ``step()`` is
+    asynchronous: it returns at once and SUMO steps while the caller works."""
+
+    def __init__(self, net_file, route_files=(), **kwargs):
+        if isinstance(route_files, (str, os.PathLike)):
+            route_files = [route_files]
+        self.net_file = Path(net_file)
+        self.route_files = [Path(p) for p in route_files]
+        self.backend = kwargs.get("backend", "libsumo")
+        self._args = (str(self.net_file), [str(p) for p in self.route_files])
+        self._kwargs = dict(kwargs)
+        self._proc = None
+        self._conn = None
+        self._pending = 0
+        self._state: dict = {"running": False, "_generation": 0}
+        self._kinds: dict = {}
+        self._cache: dict = {}
+        self._cache_gen = None
+        # reads answered with the step (path, args) -> (status, value), and the reads to ask
+        # for: every read the caller made in one of the last PREFETCH_KEEP steps
+        self._prefetched: dict = {}
+        self._prefetch_keys: dict = {}
+        self._steps = 0
+        self._actors_req = None    # (x, y, radius) of the actors query sent with the step
+        self._actors_radius = None
+        self._last_pose = None
+        self.calls = 0           # requests sent (for benchmarks)
+        self.waits = 0           # answers waited for
+
+    # --- lifecycle ----------------------------------------------------------------------
+    def setup(self) -> None:
+        if self._proc is not None:
+            raise SimulationError("TrafficProcess.setup(): this simulation is already running")
+        # a plain interpreter running this module (not multiprocessing's spawn, which re-runs
+        # the caller's __main__ in the child: user scripts without a main guard would break)
+        parent, child = socket.socketpair()
+        level = logging.getLogger("cosim").getEffectiveLevel()
+        env = dict(os.environ)
+        root = str(Path(__file__).resolve().parents[1])
+        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        try:
+            self._proc = subprocess.Popen([sys.executable, "-m", "cosim.sumo_process", str(child.fileno())],
+                                          pass_fds=(child.fileno(),), env=env, cwd=os.getcwd())
+        except OSError as e:
+            parent.close()
+            child.close()
+            raise SimulationError(f"cannot start SUMO's worker process: {e}") from None
+        child.close()
+        _WORKERS.add(self)
+        self._conn = Connection(parent.detach())
+        try:
+            self._conn.send((self._args, self._kwargs, level))
+            self._call(("setup",), (), {})
+        except BaseException:
+            self.teardown()
+            raise
+
+    def teardown(self) -> None:
+        proc, conn = self._proc, self._conn
+        self._proc = self._conn = None
+        self._pending = 0
+        if proc is None:
+            return
+        try:
+            if proc.poll() is None:
+                conn.send(("exit", (), (), {}))
+        except Exception:
+            pass
+        try:
+            proc.wait(10.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5.0)
+        try:
+            conn.close()
+        except Exception:
+            pass
+        self._state["running"] = False
+
+    def __enter__(self):
+        self.setup()
+        return self
+
+    def __exit__(self, *exc):
+        self.teardown()
+
+    def __del__(self):
+        try:
+            self.teardown()
+        except Exception:
+            pass
+
+    # --- transport ----------------------------------------------------------------------
+    def _recv(self):
+        try:
+            status, value, state, records = self._conn.recv()
+        except (EOFError, OSError):
+            code = None
+            if self._proc is not None:
+                try:
+                    code = self._proc.wait(2.0)
+                except subprocess.TimeoutExpired:
+                    self._proc.kill()
+            self._proc = None
+            self._pending = 0
+            raise SimulationError(f"SUMO's worker process ended unexpectedly (exit code {code}); "
+                                  "SUMO crashed on this network or scenario") from None
+        self._state.update(state)
+        for name, level, msg in records:
+            logging.getLogger(name).log(level, "%s", msg)
+        if status == "err":
+            raise value
+        if status == "step":
+            self._prefetched = value
+        return status, value
+
+    def sync(self):
+        """Wait for every request in flight (a step, a pose) to be answered; raise the first
+        error among them. Returns the last answer (status, value)."""
+        out = None
+        if self._pending:
+            self.waits += 1
+        while self._pending:
+            self._pending -= 1
+            out = self._recv()
+        return out
+
+    def _post(self, msg) -> None:
+        """Send a request without waiting for its answer."""
+        if self._conn is None:
+            raise SimulationError("SUMO is not running: call setup() first")
+        self.calls += 1
+        try:
+            self._conn.send(msg)
+        except (EOFError, OSError, BrokenPipeError):
+            self._pending = 0
+            self._recv()   # raises the worker's death as a SimulationError
+        self._pending += 1
+
+    def _call(self, path, args, kwargs):
+        static = path in _STATIC
+        if static:
+            gen = self._state.get("_generation")
+            if gen != self._cache_gen:
+                self._cache.clear()
+                self._cache_gen = gen
+            key = (path, args, tuple(sorted(kwargs.items())))
+            try:
+                return self._cache[key]
+            except KeyError:
+                pass
+            except TypeError:      # unhashable arguments
+                static = False
+        elif _is_read(path) and not kwargs:
+            self.sync()
+            key = (path, args)
+            try:
+                self._prefetch_keys[key] = self._steps
+                hit = self._prefetched.get(key)
+            except TypeError:      # unhashable arguments
+                hit = None
+            if hit is not None:
+                if hit[0] == "err":
+                    raise hit[1]
+                return hit[1]
+        else:
+            self._prefetched = {}  # SUMO's state may change: the answers are stale
+        self._post(("call", path, args, kwargs))
+        value = self.sync()[1]
+        if static:
+            self._cache[key] = value
+        return value
+
+    def _resolve(self, path):
+        kind = self._kinds.get(path)
+        if kind is None:
+            self._post(("get", path, (), {}))
+            status, value = self.sync()
+            if status == "ok":
+                return value
+            kind = self._kinds[path] = status
+        return _Remote(self, path)
+
+    # --- the loop's calls ---------------------------------------------------------------
+    def step(self) -> None:
+        """Start one SUMO step in the worker and return; the next call waits for it.
+
+        The step's answer brings the reads the caller made after recent steps (the ego's
+        leader, its lane, the persons on a crossing, ...) and the actors around the pose last
+        sent, so the next frame usually waits once, for the step itself."""
+        self._steps += 1
+        keys = [k for k, last in self._prefetch_keys.items() if self._steps - last <= PREFETCH_KEEP]
+        self._prefetch_keys = {k: self._prefetch_keys[k] for k in keys}
+        self._actors_req = None
+        if self._last_pose is not None and self._actors_radius is not None:
+            self._actors_req = (self._last_pose[0], self._last_pose[1], self._actors_radius + ACTORS_MARGIN_M)
+            keys.append((("actors_near",), self._actors_req))
+        self._prefetched = {}
+        self._post(("step", tuple(keys), (), {}))
+
+    def set_ego_pose(self, x, y, *args, **kwargs) -> None:
+        """Sent without waiting (its errors come with the next answer)."""
+        self._last_pose = (float(x), float(y))
+        self._prefetched = {}
+        self._post(("call", ("set_ego_pose",), (x, y) + args, kwargs))
+
+    def actors_near(self, x: float, y: float, radius: float):
+        """As SumoTraffic.actors_near; served from the actors sent with the step when they
+        cover the circle asked for."""
+        self._actors_radius = float(radius)
+        req = self._actors_req
+        if req is not None:
+            self.sync()
+            hit = self._prefetched.get((("actors_near",), req))
+            if hit is not None and hit[0] == "ok" and math.hypot(x - req[0], y - req[1]) + radius <= req[2]:
+                return hit[1].within(x, y, radius)
+        return self._call(("actors_near",), (x, y, radius), {})
+
+    def tls_states(self):
+        return self._call(("tls_states",), (), {})
+
+    @property
+    def stats_nowait(self):
+        """``stats`` without waiting for a step in flight (as of the last answer)."""
+        return self._state["stats"]
+
+    @property
+    def sumo(self):
+        if self._conn is None:
+            raise SimulationError("SUMO is not running: call setup() first")
+        return _Remote(self, ("sumo",))
+
+    def __getattr__(self, name):
+        if name.startswith("__") or name in ("_proc", "_conn", "_state", "_kinds"):
+            raise AttributeError(name)
+        state = self.__dict__.get("_state", {})
+        if name in _STATE:
+            if self.__dict__.get("_conn") is not None:
+                self.sync()
+            if name in state:
+                return state[name]
+            raise AttributeError(name)
+        if self.__dict__.get("_conn") is None:
+            raise AttributeError(f"{name} (SUMO's worker process is not running)")
+        return self._resolve((name,))
+
+
+if __name__ == "__main__":
+    _serve(Connection(int(sys.argv[1])))

@@ -1,0 +1,146 @@
+"""SUMO in a worker process (cosim.sumo_process.TrafficProcess), on the real Helsinki network.
+
+The worker runs the same SumoTraffic as the in-process component; these tests hold the two to
+the same answers, and check what only the worker has: several SUMO runs at once, a worker that
+dies, answers prefetched with a step that must never be stale."""
+from __future__ import annotations
+
+import math
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from cosim.demand import generate_demand
+from cosim.sumo_process import TrafficProcess
+from cosim.traffic import SumoTraffic, front_to_center, sumo_angle_to_yaw
+from netgen.errors import SimulationError
+
+from sumo_fixtures import build_helsinki
+
+
+@pytest.fixture(scope="module")
+def net(tmp_path_factory):
+    return build_helsinki(tmp_path_factory.mktemp("sumo-proc-net"))
+
+
+@pytest.fixture(scope="module")
+def routes(net, tmp_path_factory):
+    return generate_demand(net, tmp_path_factory.mktemp("sumo-proc-demand"), "normal", seed=4,
+                           duration=200).route_files
+
+
+def _start_lane(s):
+    for lane in s.lane.getIDList():
+        if lane.startswith(":") or "passenger" not in s.lane.getAllowed(lane):
+            continue
+        if s.lane.getLength(lane) > 80.0:
+            return lane
+    raise AssertionError("no long passenger lane")
+
+
+def _drive(t, lane, steps):
+    """Ego placed on `lane` and moved 1 m per step; the actors near it after every step."""
+    s = t.sumo
+    shape = np.array(s.lane.getShape(lane))
+    d = np.r_[0.0, np.cumsum(np.hypot(*np.diff(shape, axis=0).T))]
+    t.add_ego([lane.rsplit("_", 1)[0]])
+    out = []
+    for k in range(steps):
+        pos = 10.0 + k * 1.0
+        fx, fy = np.interp(pos, d, shape[:, 0]), np.interp(pos, d, shape[:, 1])
+        i = min(int(np.searchsorted(d, pos)), len(d) - 1)
+        ang = math.degrees(math.atan2(shape[i, 0] - shape[i - 1, 0], shape[i, 1] - shape[i - 1, 1]))
+        cx, cy = front_to_center(fx, fy, ang, 4.5)
+        t.set_ego_pose(float(cx), float(cy), sumo_angle_to_yaw(ang), 10.0)
+        t.step()
+        snap = t.actors_near(float(cx), float(cy), 120.0)
+        out.append((t.sim_time, sorted(zip(snap.ids, np.round(snap.x, 6), np.round(snap.y, 6), snap.lane))))
+    return out
+
+
+def test_worker_gives_the_same_traffic_as_in_process(net, routes):
+    local = SumoTraffic(net, routes, seed=4)
+    local.setup()
+    try:
+        lane = _start_lane(local.sumo)
+        for _ in range(300):               # let traffic fill the network
+            local.step()
+        want = _drive(local, lane, 60)
+    finally:
+        local.teardown()
+    remote = TrafficProcess(net, routes, seed=4)
+    remote.setup()
+    try:
+        for _ in range(300):
+            remote.step()
+        got = _drive(remote, lane, 60)
+        assert remote.waits < remote.calls      # steps and poses were not waited for one by one
+    finally:
+        remote.teardown()
+    assert sum(len(a) for _, a in want) > 200     # real traffic around the ego
+    assert [t for t, _ in got] == pytest.approx([t for t, _ in want])
+    assert got == want                            # same actors, same positions, same lanes
+
+
+def test_two_workers_at_once_and_reads_never_stale(net, routes):
+    a, b = TrafficProcess(net, routes, seed=1), TrafficProcess(net, seed=2)
+    a.setup()
+    b.setup()
+    try:
+        s = a.sumo
+        for _ in range(100):
+            a.step()
+            b.step()
+        assert a.sim_time == pytest.approx(10.0) and b.sim_time == pytest.approx(10.0)
+        assert a.stats.vehicles > 10 and b.stats.vehicles == 0      # b has no demand
+        # a read made every step is answered with the step; a write in between invalidates it
+        vid = sorted(s.vehicle.getIDList())[0]
+        for _ in range(5):
+            a.step()
+            s.vehicle.getSpeed(vid)
+        s.vehicle.setSpeed(vid, 0.0)
+        s.vehicle.slowDown(vid, 0.0, 0.1)
+        a.step()
+        a.step()
+        assert s.vehicle.getSpeed(vid) == pytest.approx(0.0, abs=0.01)
+        # a forced light shows in the very next read of its links (not cached as network data)
+        tid, states = next(iter(a.tls_states().items()))
+        lane = s.trafficlight.getControlledLinks(tid)[0][0][0]
+        a.set_tls_state(tid, "G" * len(states))
+        assert {l[5] for l in s.lane.getLinks(lane) if l[5] in "rRgGyY"} <= set("gG")
+        a.set_tls_state(tid, "r" * len(states))
+        assert {l[5] for l in s.lane.getLinks(lane) if l[5] in "rRgGyY"} <= set("rR")
+        # SUMO's exceptions come back as exceptions with SUMO's message
+        with pytest.raises(Exception, match="nosuchvehicle"):
+            s.vehicle.getSpeed("nosuchvehicle")
+        assert a.sim_time == pytest.approx(10.7)
+    finally:
+        a.teardown()
+        b.teardown()
+    a.teardown()   # idempotent
+    assert not a.running
+
+
+def test_worker_errors_are_one_line(net, tmp_path):
+    garbage = tmp_path / "garbage.net.xml"
+    garbage.write_text("<net><garbage")
+    t = TrafficProcess(garbage)
+    with pytest.raises(SimulationError) as ei:
+        t.setup()
+    assert "\n" not in str(ei.value) and "not a SUMO network" in str(ei.value)
+    # a worker that dies (SUMO crashing) is a one-line error, not a hang or a traceback
+    t = TrafficProcess(net)
+    t.setup()
+    try:
+        t.step()
+        os.kill(t._proc.pid, signal.SIGKILL)
+        with pytest.raises(SimulationError) as ei:
+            for _ in range(3):
+                t.step()
+            t.sumo.simulation.getTime()
+        msg = str(ei.value)
+        assert "\n" not in msg and "worker process ended unexpectedly" in msg and "-9" in msg
+    finally:
+        t.teardown()
