@@ -288,7 +288,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
     try:
         # -- meanwhile (netconvert has the other core): all that needs no network ---------
         from .buildings import plan_buildings           # (imported once netconvert runs)
-        from .roads import build_roads
+        from .roads import _road_lanes as road_lanes, build_roads
         from .scenery import plan_scenery
         from .terrain import TerrainGrid, level_under_roads, sample_grid
 
@@ -325,6 +325,8 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         # -- after the network: three streams on the two cores (see _Streams) -----------
         buildings = _Buildings(chunks, bounds, bplan, grid)
         streams = _Streams(_parallel(), grid)
+        with T.stage("roads"):      # the lanes by edge, used by both streams: made once, before the fork
+            road_lanes(net)
         with streams:
             streams.fork("cosim-layers", lambda: _layers(tmp, chunks, net, splan or scenery_plan, grid,
                                                          buildings, streams))

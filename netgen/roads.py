@@ -179,7 +179,11 @@ def _part(kind, v, f, fg, n_groups, ids, elements, osm, centroids):
 # ---------------------------------------------------------------------------------------
 def _road_lanes(net):
     """Normal edges with lanes; their lanes (>= 2 shape points) in index order, the edge of
-    each lane, and per edge (edge number, shape of its middle lane)."""
+    each lane, and per edge (edge number, shape of its middle lane). Kept on the network
+    (read-only): the build makes it once, before the processes that use it are forked."""
+    cached = getattr(net, "_road_lanes_cache", None)
+    if cached is not None:
+        return cached
     edges = [e for e in net.edges.values() if e.function == "normal" and e.lanes]
     lanes, lane_edge, refs = [], [], []
     for ei, e in enumerate(edges):
@@ -192,7 +196,12 @@ def _road_lanes(net):
         for l in ls:
             lanes.append(l)
             lane_edge.append(ei)
-    return edges, lanes, np.array(lane_edge, dtype=np.int64), refs
+    out = (edges, lanes, np.array(lane_edge, dtype=np.int64), refs)
+    try:
+        net._road_lanes_cache = out
+    except AttributeError:      # a network object that takes no attributes: not kept
+        pass
+    return out
 
 
 def _open_ring(shape):
@@ -218,7 +227,7 @@ def carriageway_parts(net) -> list:
     rings = [r for r in (_open_ring(j.shape) for j in net.junctions.values()
                          if j.type != "internal" and len(j.shape) >= 3) if r is not None]
     if rings:
-        JP, jg = _concat([np.vstack([r, r[:1]]) for r in rings])
+        JP, jg = _concat(rings)         # linearrings() closes each ring
         jp = shapely.polygons(shapely.linearrings(JP, indices=jg))
         bad = ~shapely.is_valid(jp)
         jp[bad] = shapely.make_valid(jp[bad])
@@ -278,7 +287,7 @@ def build_roads(net, ground, step: float = 2.5) -> RoadGeometry:
     supz = np.concatenate([cz, cz, cz])
 
     def zfun(xy):
-        _, i = tree.query(xy, k=1)
+        _, i = tree.query(xy, k=1, workers=-1)     # threads: a core may be idle
         return supz[i]
 
     # 3. lane markings on vehicle lanes: dashed between lanes of one edge, solid at the edges
@@ -296,30 +305,34 @@ def build_roads(net, ground, step: float = 2.5) -> RoadGeometry:
         elif e.function == "crossing" and e.lanes and len(e.lanes[0].shape) >= 2:
             crossings.append(e)
     jpolys = []
+    n1 = np.zeros(1, dtype=np.uint32)       # earcut's ring ends, one ring per polygon
     for kind in ("asphalt", "sidewalk"):
-        sel = [k for k in range(len(polys)) if pkind[k] == kind]
-        vs, fs, fg, off, keep = [], [], [], 0, []
-        for k in sel:
+        rings, tris, keep = [], [], []
+        for k in range(len(polys)):
+            if pkind[k] != kind:
+                continue
             ring = _open_ring(polys[k])
             if ring is None:
                 continue
-            tri = mapbox_earcut.triangulate_float64(ring, np.array([len(ring)], dtype=np.uint32))
+            n1[0] = len(ring)
+            tri = mapbox_earcut.triangulate_float64(ring, n1)
             if len(tri) == 0:
                 continue
-            vs.append(ring)
-            fs.append(tri.reshape(-1, 3) + off)
-            fg.append(np.full(len(tri) // 3, len(keep)))
-            off += len(ring)
+            rings.append(ring)
+            tris.append(tri)
             keep.append(k)
-            if kind == "asphalt":
-                jpolys.append(ring)
         if not keep:
             continue
-        V2 = np.vstack(vs)
+        if kind == "asphalt":
+            jpolys += rings
+        # faces renumbered into the stacked vertices, one group per polygon (in one go)
+        nv = np.array([len(r) for r in rings], dtype=np.int64)
+        nt = np.array([len(t) for t in tris], dtype=np.int64) // 3
+        F = np.concatenate(tris).reshape(-1, 3).astype(np.int64) + np.repeat(np.cumsum(nv) - nv, nt)[:, None]
+        FG = np.repeat(np.arange(len(keep)), nt)
+        V2 = np.vstack(rings)
         Z = zfun(V2) + (SIDEWALK_LIFT if kind == "sidewalk" else 0.0)
         V = np.column_stack([V2, Z])
-        F = np.vstack(fs)
-        FG = np.concatenate(fg)
         PP, pg = _concat([polys[k][:, :2] for k in keep])     # as given (closing point too)
         cnt = np.bincount(pg, minlength=len(keep))
         cen = np.column_stack([np.bincount(pg, PP[:, 0], len(keep)), np.bincount(pg, PP[:, 1], len(keep))])

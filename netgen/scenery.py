@@ -82,6 +82,7 @@ MAX_MOVE_M = 15.0
 AREA_CELL_M = 10.0
 MAX_AREA_CELLS = 40000
 GRID_CELL_M = 10.0          # smallest cell of PolygonSet's point-test grid
+RAY_BLOCK = 8               # ray steps tested at a time when searching around a stuck pole
 AREA_STYLE = {  # kind: (RGBA, height above ground in m)
     "wood": ((70, 110, 60, 255), 0.03),
     "grass": ((110, 160, 80, 255), 0.05),
@@ -426,12 +427,23 @@ def _radial_exit(x, y, road: PolygonSet, bld: PolygonSet, max_move_m: float, ndi
     ang = np.arange(ndir) * (2 * math.pi / ndir)
     dist = np.arange(step, max_move_m - OFF_ROAD_M + 1e-9, step)
     rx, ry = np.full(len(x), np.nan), np.full(len(x), np.nan)
-    # the ray samples of all points, tested at once: off[i, a, k] is True off the road
-    X = x[:, None, None] + np.cos(ang)[None, :, None] * dist[None, None, :]
-    Y = y[:, None, None] + np.sin(ang)[None, :, None] * dist[None, None, :]
-    off = ~road.covers_xy(X.ravel(), Y.ravel()).reshape(X.shape)
-    has = off.any(axis=2)
-    first = np.where(has, off.argmax(axis=2), len(dist))
+    # the ray samples, tested a few steps at a time for all rays still on the road:
+    # first[i, a] is the first step of ray a from point i that is off the road
+    cos, sin = np.cos(ang), np.sin(ang)
+    first = np.full((len(x), ndir), len(dist))
+    onroad = np.ones((len(x), ndir), bool)
+    for k0 in range(0, len(dist), RAY_BLOCK):
+        ri, ra = np.nonzero(onroad)
+        if not len(ri):
+            break
+        dk = dist[None, k0:k0 + RAY_BLOCK]
+        X = x[ri, None] + cos[ra, None] * dk
+        Y = y[ri, None] + sin[ra, None] * dk
+        off = ~road.covers_xy(X.ravel(), Y.ravel()).reshape(X.shape)
+        hit = off.any(axis=1)
+        first[ri[hit], ra[hit]] = k0 + off[hit].argmax(axis=1)
+        onroad[ri[hit], ra[hit]] = False
+    has = first < len(dist)
     d_exit = np.where(has, dist[np.minimum(first, len(dist) - 1)], np.inf) + OFF_ROAD_M   # (n, ndir)
     order = np.argsort(d_exit, axis=1)          # per row, as a point-by-point argsort
     # candidates in order of their exit distance, round r trying every point's r-th one:

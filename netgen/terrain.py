@@ -131,7 +131,7 @@ def level_under_roads(grid: TerrainGrid, pts: np.ndarray, halfwidth: np.ndarray,
     q = np.column_stack([X.ravel(), Y.ravel()])
     tree = cKDTree(pts[:, :2])
     reach = float(halfwidth.max()) + INNER_CELLS * sp + blend_m
-    d, idx = tree.query(q, k=1, distance_upper_bound=reach)
+    d, idx = tree.query(q, k=1, distance_upper_bound=reach, workers=-1)     # threads: a core may be idle
     hit = np.isfinite(d)
     z = grid.z.ravel().copy()
     z0 = z.copy()
