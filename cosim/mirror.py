@@ -61,6 +61,8 @@ class ActorMirror:
         self.created = 0
         self.held = 0
         self.max_error_m = 0.0
+        self._keys: dict = {}       # actor id -> size key
+        self._last: dict = {}       # body -> last position set (a body standing still is not moved)
 
     def _body(self, key):
         free = self.pool.get(key)
@@ -93,39 +95,57 @@ class ActorMirror:
         seen = set()
         held = 0
         if n:
-            z = self.world.ground_z(snap.x, snap.y)
+            x, y, yaw = snap.x, snap.y, snap.yaw
+            z = self.world.ground_z(x, y)
             z = np.where(np.isfinite(z), z, 0.0)
-            pitch = self.world.slope_pitch(snap.x, snap.y, snap.yaw)
+            pitch = self.world.slope_pitch(x, y, yaw)
             pitch = np.where(np.isfinite(pitch), pitch, np.radians(snap.slope))
+            # size keys (box sizes rounded so that bodies can be pooled), computed once per actor
+            keys = self._keys
+            # quaternions of (roll 0, pitch -p, yaw) for all actors at once
+            hy, hp = yaw * 0.5, -pitch * 0.5
+            cy, sy, cp2, sp2 = np.cos(hy), np.sin(hy), np.cos(hp), np.sin(hp)
+            quat = np.column_stack([-sp2 * sy, sp2 * cy, cp2 * sy, cp2 * cy]).tolist()
+            cosp = np.cos(pitch)
+            # only actors near the ego can overlap it (cheap distance test first)
+            if ego is not None:
+                reach = (ego[3] + ego[4]) * 0.5 + 0.5 * (snap.length + snap.width) + 0.5
+                near = ((x - ego[0]) ** 2 + (y - ego[1]) ** 2 <= reach * reach).tolist()
+            else:
+                near = [False] * n
+            xs, ys, zs, yaws = x.tolist(), y.tolist(), z.tolist(), yaw.tolist()
+            ids, kinds = snap.ids, snap.kind
             for k in range(n):
-                aid = snap.ids[k]
-                kind = "person" if snap.kind[k] == "person" else str(snap.kind[k])
-                key = _size_key(kind, snap.length[k], snap.width[k], snap.height[k])
+                aid = ids[k]
+                key = keys.get(aid)
+                if key is None:
+                    kind = "person" if kinds[k] == "person" else str(kinds[k])
+                    key = keys[aid] = _size_key(kind, snap.length[k], snap.width[k], snap.height[k])
                 cur = self.active.get(aid)
                 if cur is None or cur[1] != key:
                     if cur is not None:
                         self._park(cur)
                     cur = (self._body(key), key)
                     self.active[aid] = cur
-                h = key[3]
-                if ego is not None and _overlap(ego, (float(snap.x[k]), float(snap.y[k]), float(snap.yaw[k]),
-                                                      key[1], key[2])):
-                    held += 1
-                    seen.add(aid)
-                    continue
-                cp = math.cos(pitch[k])
-                q = pb.getQuaternionFromEuler([0.0, -float(pitch[k]), float(snap.yaw[k])])
-                pb.resetBasePositionAndOrientation(cur[0], [float(snap.x[k]), float(snap.y[k]),
-                                                            float(z[k]) + h / 2 * cp], q, physicsClientId=c)
                 seen.add(aid)
+                if near[k] and _overlap(ego, (xs[k], ys[k], yaws[k], key[1], key[2])):
+                    held += 1
+                    continue
+                pos = (xs[k], ys[k], zs[k] + key[3] * 0.5 * cosp[k])
+                if self._last.get(cur[0]) == pos:      # standing still: nothing to move
+                    continue
+                self._last[cur[0]] = pos
+                pb.resetBasePositionAndOrientation(cur[0], pos, quat[k], physicsClientId=c)
         gone = [a for a in self.active if a not in seen]
         for a in gone:
             self._park(self.active.pop(a))
+            self._keys.pop(a, None)
         self.held += held
         return {"mirrored": len(self.active), "left": len(gone), "held": held}
 
     def _park(self, cur):
         body, key = cur
+        self._last.pop(body, None)
         pb.resetBasePositionAndOrientation(body, [0, 0, PARK_Z - 10 * len(self.pool.get(key, []))], [0, 0, 0, 1],
                                            physicsClientId=self.client)
         self.pool.setdefault(key, []).append(body)
@@ -147,6 +167,8 @@ class ActorMirror:
         for old, new in mapping.items():
             if old in self.active:
                 self.active[new] = self.active.pop(old)
+            if old in self._keys:
+                self._keys[new] = self._keys.pop(old)
 
     def body_of(self, actor_id):
         cur = self.active.get(actor_id)

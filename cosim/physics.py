@@ -33,6 +33,7 @@ COLOURS = {
     "rail": (0.45, 0.40, 0.36, 1.0),
 }
 COLLIDE = {"asphalt", "sidewalk", "building", "rail"}
+COMPOUND_MAX = 16   # children per createCollisionShapeArray / createVisualShapeArray (PyBullet's limit)
 PREFAB_COLOURS = {"tree": (0.20, 0.45, 0.18, 1), "street_lamp": (0.35, 0.36, 0.38, 1),
                   "traffic_signal": (0.15, 0.15, 0.15, 1), "stop_sign": (0.80, 0.10, 0.10, 1),
                   "give_way_sign": (0.95, 0.95, 0.95, 1), "bench": (0.45, 0.30, 0.18, 1)}
@@ -250,39 +251,71 @@ class PhysicsWorld:
 
     def _load_prefabs(self):
         meta = json.loads((prefab_dir() / "prefabs.json").read_text())["prefabs"]
-        c = self.client
         for kind, m in meta.items():
             col = m["collision"]
             off = col.get("offset", [0, 0, 0])
             if col["type"] == "cylinder":
-                cs = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=col["radius"], height=col["height"],
-                                             collisionFramePosition=off, physicsClientId=c)
+                cs = (pb.GEOM_CYLINDER, float(col["radius"]), [0.0, 0.0, 0.0], float(col["height"]), list(off))
             else:
-                cs = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=col["half_extents"],
-                                             collisionFramePosition=off, physicsClientId=c)
-            vs = -1
-            if self.visuals:
-                vs = pb.createVisualShape(pb.GEOM_MESH, fileName=str(prefab_dir() / m["file"]),
-                                          rgbaColor=PREFAB_COLOURS.get(kind, (0.6, 0.6, 0.6, 1)), physicsClientId=c)
-            self._prefabs[kind] = (cs, vs)
+                cs = (pb.GEOM_BOX, 0.0, list(col["half_extents"]), 0.0, list(off))
+            self._prefabs[kind] = (cs, None, m["file"])
 
     def _scenery_bodies(self, key) -> list:
+        """The tile's scenery (trees, lamps, signals, signs, benches) as a few static bodies,
+        each a compound of up to COMPOUND_MAX items' colliders (PyBullet's limit per shape
+        array). Bullet's step costs about 0.6 us per body: one body per item (hundreds per
+        tile) cost more than the rest of the world together. With visuals on, each kind's
+        meshes are merged the same way into visual-only bodies."""
         inst = self.world.scenery((key[0], key[1]))
         if not inst:
             return []
         xmin, ymin, xmax, ymax = self.world.tile_bounds(key)
-        by_kind: dict = {}
-        for s in inst:
-            if xmin <= s["x"] < xmax and ymin <= s["y"] < ymax and s["kind"] in self._prefabs:
-                by_kind.setdefault(s["kind"], []).append(s)
-        bodies = []
+        items = [s for s in inst if xmin <= s["x"] < xmax and ymin <= s["y"] < ymax and s["kind"] in self._prefabs]
+        if not items:
+            return []
         c = self.client
-        for kind, items in by_kind.items():
-            cs, vs = self._prefabs[kind]
+        ox, oy = (xmin + xmax) / 2.0, (ymin + ymax) / 2.0   # bodies' origin: the tile's centre
+
+        def frame(s, off=(0.0, 0.0, 0.0)):
+            yaw = float(s.get("yaw", 0.0))
+            cy, sy = math.cos(yaw), math.sin(yaw)
+            return ([s["x"] - ox + cy * off[0] - sy * off[1], s["y"] - oy + sy * off[0] + cy * off[1], s["z"] + off[2]],
+                    [0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
+
+        bodies = []
+        for n0 in range(0, len(items), COMPOUND_MAX):
+            part = items[n0:n0 + COMPOUND_MAX]
+            cs = self._shape_pool.get(("scenery-compound", key, n0))
+            if cs is None:
+                cols = [self._prefabs[s["kind"]][0] for s in part]
+                frames = [frame(s, col[4]) for s, col in zip(part, cols)]
+                cs = pb.createCollisionShapeArray(
+                    shapeTypes=[col[0] for col in cols], radii=[col[1] for col in cols],
+                    halfExtents=[col[2] for col in cols], lengths=[col[3] for col in cols],
+                    collisionFramePositions=[f[0] for f in frames], collisionFrameOrientations=[f[1] for f in frames],
+                    physicsClientId=c)
+                self._shape_pool[("scenery-compound", key, n0)] = cs
+            bodies.append(pb.createMultiBody(0, cs, -1, [ox, oy, 0.0], useMaximalCoordinates=True, physicsClientId=c))
+        if self.visuals:
+            by_kind: dict = {}
             for s in items:
-                q = pb.getQuaternionFromEuler([0, 0, s.get("yaw", 0.0)])
-                bodies.append(pb.createMultiBody(0, cs, vs, [s["x"], s["y"], s["z"]], q, useMaximalCoordinates=True,
-                                                   physicsClientId=c))
+                by_kind.setdefault(s["kind"], []).append(s)
+            for kind, group in by_kind.items():
+                f = str(prefab_dir() / self._prefabs[kind][2])
+                for n0 in range(0, len(group), COMPOUND_MAX):
+                    part = group[n0:n0 + COMPOUND_MAX]
+                    vs = self._shape_pool.get(("scenery-visual", key, kind, n0))
+                    if vs is None:
+                        frames = [frame(s) for s in part]
+                        vs = pb.createVisualShapeArray(
+                            shapeTypes=[pb.GEOM_MESH] * len(part), fileNames=[f] * len(part),
+                            meshScales=[[1, 1, 1]] * len(part), visualFramePositions=[fr[0] for fr in frames],
+                            visualFrameOrientations=[fr[1] for fr in frames], physicsClientId=c)
+                        self._shape_pool[("scenery-visual", key, kind, n0)] = vs
+                    b = pb.createMultiBody(0, -1, vs, [ox, oy, 0.0], useMaximalCoordinates=True, physicsClientId=c)
+                    pb.changeVisualShape(b, -1, rgbaColor=PREFAB_COLOURS.get(kind, (0.6, 0.6, 0.6, 1)),
+                                         physicsClientId=c)
+                    bodies.append(b)
         return bodies
 
     def _chunk_visual_ref(self, ij, delta):

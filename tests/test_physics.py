@@ -66,3 +66,44 @@ def test_streaming_reuses_shapes(monaco_world):
         assert pw.covered(0, -600, 150.0)
     finally:
         pw.teardown()
+
+
+def test_scenery_colliders_are_one_body_per_tile(monaco_world):
+    """Every tree, lamp, signal and sign of a loaded tile stops a ray at its collider (where
+    prefabs.json puts it), and a tile's scenery is a single body, not one body per item."""
+    import json
+
+    from models import prefab_dir
+
+    w = monaco_world
+    pw = PhysicsWorld(w).setup()
+    try:
+        pw.update(0.0, 0.0, 300.0, budget_ms=1e9)
+        meta = json.loads((prefab_dir() / "prefabs.json").read_text())["prefabs"]
+        items = []
+        for key in pw.tiles:
+            xmin, ymin, xmax, ymax = w.tile_bounds(key)
+            items += [s for s in w.scenery((key[0], key[1])) if xmin <= s["x"] < xmax and ymin <= s["y"] < ymax
+                      and s["kind"] in meta]
+        assert len(items) > 100
+        n_scenery_bodies = sum(1 for tb in pw.tiles.values() for b in tb.bodies if pw.body_kind(b) == "scenery")
+        assert n_scenery_bodies <= len(items) / 16 + len(pw.tiles)     # merged, not one body per item
+        # a vertical ray down onto each item's collider, from 1 m above its top
+        starts, ends, want = [], [], []
+        for s in items:
+            col = meta[s["kind"]]["collision"]
+            cz = s["z"] + col.get("offset", [0, 0, 0])[2]          # the collider's centre height
+            top = cz + (col["height"] / 2 if col["type"] == "cylinder" else col["half_extents"][2])
+            starts.append([s["x"], s["y"], top + 1.0])
+            ends.append([s["x"], s["y"], cz])
+            want.append(top)
+        hits = pb.rayTestBatch(starts, ends, physicsClientId=pw.client)
+        kinds = [pw.body_kind(h[0]) for h in hits]
+        hit_scenery = sum(1 for k in kinds if k == "scenery")
+        print(f"{hit_scenery}/{len(want)} scenery colliders hit; other hits: "
+              f"{sorted(set(k for k in kinds if k != 'scenery'))}")
+        assert hit_scenery >= 0.95 * len(want)
+        tops = [abs(h[3][2] - t) for h, k, t in zip(hits, kinds, want) if k == "scenery"]
+        assert max(tops) < 0.02          # at the collider's top: placed where prefabs.json says
+    finally:
+        pw.teardown()
