@@ -17,7 +17,8 @@ has finished, and what is left runs on both cores. Stages (timed; the report and
 3. read the network while netconvert writes it (``net_read``: netconvert spends about a
    quarter of its time writing, and what the builder needs comes first in the file);
 4. then three streams (:class:`_Streams`): this process meshes the roads and levels the
-   terrain under them; a forked process builds the carriageway and places the scenery on
+   terrain under them (as soon as the roads' levelling support is known, before the rest
+   of the meshing, so that the scenery and buildings need not wait); a forked process builds the carriageway and places the scenery on
    it (moving poles off it, cutting grass along it) and on the final terrain, and writes
    it; a second forked process, started once the roads are meshed, writes road tiles.
    Road tiles and buildings (lifted onto the levelled terrain) are written piece by piece
@@ -330,23 +331,32 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         with streams:
             streams.fork("cosim-layers", lambda: _layers(tmp, chunks, net, splan or scenery_plan, grid,
                                                          buildings, streams))
+            lev = {}
+
+            def level(pts, hw):     # as soon as the roads' support is known: the scenery
+                with T.stage("terrain_level"):      # stream may be waiting for the terrain
+                    lev.update(level_under_roads(grid, pts, hw))
+                streams.terrain_ready()
+
             with T.stage("roads"):
-                roads = build_roads(net, natural.sample, q["road_step_m"])
+                roads = build_roads(net, natural.sample, q["road_step_m"], on_support=level)
+            T.t["roads"] = round(T.t["roads"] - T.t["terrain_level"], 3)
             nc.running()
             with T.stage("road_tiles_plan"):
                 road_tiles = _RoadTiles(chunks, bounds, roads, TILE_M)
             streams.fork("cosim-tiles", lambda: (road_tiles.write_claimed(tmp, streams),
                                                  buildings.write_claimed(tmp, streams)))
-            with T.stage("terrain_level"):
-                lev = level_under_roads(grid, roads.support_pts, roads.support_hw)
-            streams.terrain_ready()
-            with T.stage("netconvert_wait"):    # it has long finished writing: check it succeeded
-                warnings = nc.finish(T)
             progress("write", 0.0, "writing chunks")
             with T.stage("write"):
                 entries = _write_terrain(tmp, chunks, bounds, grid)
+                nc.running()
                 tiles = road_tiles.write_claimed(tmp, streams)          # what nobody has taken
+                nc.running()
                 bfiles = buildings.write_claimed(tmp, streams)
+            # netconvert writes the rest of its file (connections) meanwhile: only now check
+            # that it succeeded (and cache its output)
+            with T.stage("netconvert_wait"):
+                warnings = nc.finish(T)
             with T.stage("streams_wait"):
                 lout, (t2, b2) = streams.results(
                     lambda: _layers(tmp, chunks, net, splan or scenery_plan, grid, buildings, streams),

@@ -235,10 +235,13 @@ def carriageway_parts(net) -> list:
     return out
 
 
-def build_roads(net, ground, step: float = 2.5) -> RoadGeometry:
+def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry:
     """Meshes for every SUMO edge, junction, walking area and crossing of `net`.
 
-    `ground(x, y)` is the natural terrain height (vectorised)."""
+    `ground(x, y)` is the natural terrain height (vectorised). `on_support(pts, hw)`, if
+    given, is called with the levelling support (:attr:`RoadGeometry.support_pts` and
+    ``support_hw``) as soon as it is complete, before the rest of the meshing (lane strips,
+    markings, walking areas, crossings), so that the terrain can be levelled meanwhile."""
     geo = RoadGeometry(net=net)
     edges, lanes, lane_edge, refs = _road_lanes(net)
 
@@ -250,17 +253,93 @@ def build_roads(net, ground, step: float = 2.5) -> RoadGeometry:
     rkey = 2.0 * ref_e[rg] + rs / np.maximum(rtot[rg], 1e-9)
     rz = np.asarray(ground(RP[:, 0], RP[:, 1]), dtype=float)
 
-    # 2. lanes as strips
+    # 2. lane centrelines, resampled, with heights from their edge's profile
     LP, lg = _concat([l.shape for l in lanes])
     C, cg = resample_many(LP, lg, step)
     cs, ctot = _arclen(C, cg)
     key = 2.0 * lane_edge[cg] + cs / np.maximum(ctot[cg], 1e-9)
     cz = np.interp(key, rkey, rz)
     width = np.array([l.width for l in lanes])
+    hw = width[cg] / 2.0
+    # support points for levelling and for junction heights: centrelines and lane corners
+    nrm = _normals_many(C, cg) * hw[:, None]
+    corners = np.vstack([np.column_stack([C + nrm, cz]), np.column_stack([C - nrm, cz])])
+    sup = [np.column_stack([C, cz]), corners]
+    sup_hw = [hw, np.zeros(len(corners))]
+    tree = cKDTree(np.vstack(sup)[:, :2])
+    supz = np.concatenate([cz, cz, cz])
+
+    def zfun(xy):
+        _, i = tree.query(xy, k=1, workers=-1)     # threads: a core may be idle
+        return supz[i]
+
+    # 3. junctions, walking areas: polygons (earcut) with heights from the lanes; the
+    # junctions first (they complete the levelling support)
+    polys, pkind, pid, pel = [], [], [], []
+    for j in net.junctions.values():
+        if j.type != "internal" and len(j.shape) >= 3:
+            polys.append(j.shape); pkind.append("asphalt"); pid.append(j.id); pel.append("junction")
+    crossings = []
+    for e in net.edges.values():
+        if e.function == "walkingarea" and e.lanes and len(e.lanes[0].shape) >= 3:
+            polys.append(e.lanes[0].shape); pkind.append("sidewalk"); pid.append(e.id); pel.append("walkingarea")
+        elif e.function == "crossing" and e.lanes and len(e.lanes[0].shape) >= 2:
+            crossings.append(e)
+    jpolys = []
+    n1 = np.zeros(1, dtype=np.uint32)       # earcut's ring ends, one ring per polygon
+
+    def polygon_part(kind):
+        rings, tris, keep = [], [], []
+        for k in range(len(polys)):
+            if pkind[k] != kind:
+                continue
+            ring = _open_ring(polys[k])
+            if ring is None:
+                continue
+            n1[0] = len(ring)
+            tri = mapbox_earcut.triangulate_float64(ring, n1)
+            if len(tri) == 0:
+                continue
+            rings.append(ring)
+            tris.append(tri)
+            keep.append(k)
+        if not keep:
+            return None
+        if kind == "asphalt":
+            jpolys.extend(rings)
+        # faces renumbered into the stacked vertices, one group per polygon (in one go)
+        nv = np.array([len(r) for r in rings], dtype=np.int64)
+        nt = np.array([len(t) for t in tris], dtype=np.int64) // 3
+        F = np.concatenate(tris).reshape(-1, 3).astype(np.int64) + np.repeat(np.cumsum(nv) - nv, nt)[:, None]
+        FG = np.repeat(np.arange(len(keep)), nt)
+        V2 = np.vstack(rings)
+        Z = zfun(V2) + (SIDEWALK_LIFT if kind == "sidewalk" else 0.0)
+        V = np.column_stack([V2, Z])
+        PP, pg = _concat([polys[k][:, :2] for k in keep])     # as given (closing point too)
+        cnt = np.bincount(pg, minlength=len(keep))
+        cen = np.column_stack([np.bincount(pg, PP[:, 0], len(keep)), np.bincount(pg, PP[:, 1], len(keep))])
+        cen /= cnt[:, None]
+        if kind == "asphalt":
+            # junction interiors as levelling support: centroid with the polygon's reach
+            radius = np.zeros(len(keep))
+            np.maximum.at(radius, pg, np.hypot(*(PP - cen[pg]).T))
+            sup.append(np.column_stack([cen, zfun(cen)]))
+            sup_hw.append(radius)
+            sup.append(V)
+            sup_hw.append(np.zeros(len(V)))
+        return _part(kind, V, F, FG, len(keep), [pid[k] for k in keep],
+                     [pel[k] for k in keep], [()] * len(keep), cen)
+
+    junction_part = polygon_part("asphalt")
+    geo.support_pts = np.vstack(sup)
+    geo.support_hw = np.concatenate(sup_hw)
+    if on_support is not None:
+        on_support(geo.support_pts, geo.support_hw)
+
+    # 4. lanes as strips
     side = np.array([l.pedestrian_only for l in lanes])
     rail = np.array([bool(l.allowed) and l.allowed <= RAIL_CLASSES for l in lanes])
     drive = np.array([l.drivable for l in lanes])
-    hw = width[cg] / 2.0
     ids = [lanes[k].id for k in range(len(lanes))]
     osm = [edges[lane_edge[k]].orig_ids for k in range(len(lanes))]
     cent = np.zeros((len(lanes), 2))
@@ -278,75 +357,16 @@ def build_roads(net, ground, step: float = 2.5) -> RoadGeometry:
         v, f, fg = _strips(C[pm], remap[cg[pm]], cz[pm], hw[pm], lift)
         parts[kind].append(_part(kind, v, f, fg, len(sel), [ids[k] for k in sel], ["lane"] * len(sel),
                                  [osm[k] for k in sel], cent[sel]))
-    # support points for levelling and for junction heights: centrelines and lane corners
-    nrm = _normals_many(C, cg) * hw[:, None]
-    corners = np.vstack([np.column_stack([C + nrm, cz]), np.column_stack([C - nrm, cz])])
-    sup = [np.column_stack([C, cz]), corners]
-    sup_hw = [hw, np.zeros(len(corners))]
-    tree = cKDTree(np.vstack(sup)[:, :2])
-    supz = np.concatenate([cz, cz, cz])
 
-    def zfun(xy):
-        _, i = tree.query(xy, k=1, workers=-1)     # threads: a core may be idle
-        return supz[i]
-
-    # 3. lane markings on vehicle lanes: dashed between lanes of one edge, solid at the edges
+    # 5. lane markings on vehicle lanes: dashed between lanes of one edge, solid at the edges
     _markings(parts, edges, lanes, lane_edge, drive, C, cg, cz, cs, hw)
 
-    # 4. junctions, walking areas, crossings: polygons (earcut) with heights from the lanes
-    polys, pkind, pid, pel = [], [], [], []
-    for j in net.junctions.values():
-        if j.type != "internal" and len(j.shape) >= 3:
-            polys.append(j.shape); pkind.append("asphalt"); pid.append(j.id); pel.append("junction")
-    crossings = []
-    for e in net.edges.values():
-        if e.function == "walkingarea" and e.lanes and len(e.lanes[0].shape) >= 3:
-            polys.append(e.lanes[0].shape); pkind.append("sidewalk"); pid.append(e.id); pel.append("walkingarea")
-        elif e.function == "crossing" and e.lanes and len(e.lanes[0].shape) >= 2:
-            crossings.append(e)
-    jpolys = []
-    n1 = np.zeros(1, dtype=np.uint32)       # earcut's ring ends, one ring per polygon
-    for kind in ("asphalt", "sidewalk"):
-        rings, tris, keep = [], [], []
-        for k in range(len(polys)):
-            if pkind[k] != kind:
-                continue
-            ring = _open_ring(polys[k])
-            if ring is None:
-                continue
-            n1[0] = len(ring)
-            tri = mapbox_earcut.triangulate_float64(ring, n1)
-            if len(tri) == 0:
-                continue
-            rings.append(ring)
-            tris.append(tri)
-            keep.append(k)
-        if not keep:
-            continue
-        if kind == "asphalt":
-            jpolys += rings
-        # faces renumbered into the stacked vertices, one group per polygon (in one go)
-        nv = np.array([len(r) for r in rings], dtype=np.int64)
-        nt = np.array([len(t) for t in tris], dtype=np.int64) // 3
-        F = np.concatenate(tris).reshape(-1, 3).astype(np.int64) + np.repeat(np.cumsum(nv) - nv, nt)[:, None]
-        FG = np.repeat(np.arange(len(keep)), nt)
-        V2 = np.vstack(rings)
-        Z = zfun(V2) + (SIDEWALK_LIFT if kind == "sidewalk" else 0.0)
-        V = np.column_stack([V2, Z])
-        PP, pg = _concat([polys[k][:, :2] for k in keep])     # as given (closing point too)
-        cnt = np.bincount(pg, minlength=len(keep))
-        cen = np.column_stack([np.bincount(pg, PP[:, 0], len(keep)), np.bincount(pg, PP[:, 1], len(keep))])
-        cen /= cnt[:, None]
-        parts[kind].append(_part(kind, V, F, FG, len(keep), [pid[k] for k in keep],
-                                 [pel[k] for k in keep], [()] * len(keep), cen))
-        if kind == "asphalt":
-            # junction interiors as levelling support: centroid with the polygon's reach
-            radius = np.zeros(len(keep))
-            np.maximum.at(radius, pg, np.hypot(*(PP - cen[pg]).T))
-            sup.append(np.column_stack([cen, zfun(cen)]))
-            sup_hw.append(radius)
-            sup.append(V)
-            sup_hw.append(np.zeros(len(V)))
+    # 6. the polygons in their classes (after the lanes), walking areas, crossings
+    if junction_part is not None:
+        parts["asphalt"].append(junction_part)
+    walk_part = polygon_part("sidewalk")
+    if walk_part is not None:
+        parts["sidewalk"].append(walk_part)
     if crossings:
         XP, xg = _concat([e.lanes[0].shape for e in crossings])
         XC, xcg = resample_many(XP, xg, step)
@@ -368,8 +388,6 @@ def build_roads(net, ground, step: float = 2.5) -> RoadGeometry:
         parts["marking"].append(_part("marking", v, f, fg, len(crossings), [e.id for e in crossings],
                                       ["zebra"] * len(crossings), [()] * len(crossings), xcent))
     geo.parts = {k: v for k, v in parts.items() if v}
-    geo.support_pts = np.vstack(sup)
-    geo.support_hw = np.concatenate(sup_hw)
     geo.stats = {"lanes_meshed": len(lanes), "junctions_meshed": len(jpolys),
                  "walkingareas_meshed": sum(1 for e in pel if e == "walkingarea"),
                  "crossings_meshed": len(crossings),
