@@ -1,12 +1,15 @@
 """Co-simulation benchmark and soak run.
 
-    python bench/bench_cosim.py                      # RTF vs SUMO alone, frame times (2 x 120 s)
+    python bench/bench_cosim.py                      # RTF vs SUMO alone, frame times (120 s each)
+    python bench/bench_cosim.py --cpus 1 --mode serial   # the one-core figure
     python bench/bench_cosim.py --soak-minutes 30    # the 30-minute dense drive across chunks
 
 Real-time factors are taken side by side in one run, on the same network, demand and seed:
 
 * SUMO alone: libsumo stepping the scenario, nothing else;
-* the full co-simulation: SUMO + PyBullet (ego car, mirrored actors, streamed tiles), headless.
+* the full co-simulation: SUMO + PyBullet (ego car, mirrored actors, streamed tiles), headless,
+  with SUMO in the same process ("serial") and in its worker process stepping while the
+  physics runs ("pipelined", the default on two or more CPUs).
 
 The goals: co-sim >= 0.7 x SUMO-alone speed with ~400 actors, >= 20x real time; frame time
 p99.9 <= 2 x median and no frame over 50 ms caused by tile loading. The soak reports memory
@@ -94,8 +97,10 @@ def soak(world, minutes, seed, speed):
             for _ in range(600):
                 sim.step()
             rss = proc.memory_info().rss / 1e6
+            worker = getattr(sim.traffic, "_proc", None)
+            wrss = psutil.Process(worker.pid).memory_info().rss / 1e6 if worker is not None else 0.0
             st = sim.vehicle.state()
-            print(f"  minute {minute + 1:3d}: rss {rss:7.1f} MB  chunk {sim.world.frame.chunk_of(st.x, st.y)}  "
+            print(f"  minute {minute + 1:3d}: rss {rss:7.1f} MB (SUMO worker {wrss:6.1f} MB)  chunk {sim.world.frame.chunk_of(st.x, st.y)}  "
                   f"{sim.summary.distance_m / 1000:5.2f} km  tiles loaded {sim.physics.loads} unloaded {sim.physics.unloads}  "
                   f"windows {sim.streamer.swaps}  heightfield shapes {sim.physics.hf_shapes_created}  "
                   f"mesh shapes {len(sim.physics._shape_pool)}  mirror bodies {sim.mirror.created}  "
@@ -121,7 +126,12 @@ def main(argv=None):
     ap.add_argument("--mode", choices=["both", "serial", "pipelined"], default="both",
                     help="SUMO in-process (serial) and/or in a worker process stepping beside the physics")
     ap.add_argument("--out", default=str(REPO / "bench" / "results" / "worlds"))
+    ap.add_argument("--cpus", type=int, default=0,
+                    help="pin this run (and SUMO's worker) to this many CPUs, e.g. 1 for the one-core figure")
     a = ap.parse_args(argv)
+    if a.cpus:
+        os.sched_setaffinity(0, set(sorted(os.sched_getaffinity(0))[:a.cpus]))
+        print(f"pinned to CPU(s) {sorted(os.sched_getaffinity(0))}")
     out = Path(a.out) / a.preset
     w = build_world(WorldConfig(preset=a.preset, chunks=1, out=str(out)))
     world = Path(w["out"])

@@ -61,6 +61,11 @@ _STATIC = {
 }
 
 
+# reads prefetched only for a vehicle on a lane: the caller guards them (libsumo's getLeader
+# segfaults for a vehicle that moveToXY left off the network), and a prefetch must not be less
+# careful than the caller
+_NEEDS_LANE = {("sumo", "vehicle", n) for n in ("getLeader", "getFollower", "getNeighbors", "getNextTLS",
+                                                "getBestLanes", "getNextLinks", "getNextStops")}
 PREFETCH_KEEP = 3        # steps a read is asked for again after the caller last made it
 ACTORS_MARGIN_M = 10.0   # the actors sent with a step cover the radius asked for + this
 
@@ -152,6 +157,13 @@ def _state(t) -> dict:
     return out
 
 
+def _on_lane(t, args) -> bool:
+    try:
+        return bool(args) and bool(t.sumo.vehicle.getLaneID(args[0]))
+    except Exception:
+        return False
+
+
 def _serve(conn):
     """Worker main loop: one SumoTraffic, requests answered in order."""
     from cosim.traffic import SumoTraffic
@@ -177,6 +189,8 @@ def _serve(conn):
                 t.step()
                 status, value = "step", {}
                 for key in path:               # reads the caller will make: answered now
+                    if key[0] in _NEEDS_LANE and not _on_lane(t, key[1]):
+                        continue   # libsumo can crash on these for a vehicle off the network
                     try:
                         obj = t
                         for name in key[0]:
