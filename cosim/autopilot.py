@@ -545,14 +545,8 @@ class Autopilot:
 
     def _incoming_lanes(self) -> dict:
         if self._incoming is None:
-            s = self.sim.traffic.sumo
-            inc: dict = {}
-            for lane in s.lane.getIDList():
-                if lane.startswith(":"):
-                    continue
-                for link in s.lane.getLinks(lane):
-                    inc.setdefault(link[0], []).append(lane)
-            self._incoming = inc
+            # one call (SUMO may be in a worker process: not one call per lane of the network)
+            self._incoming = self.sim.traffic.incoming_lanes()
         return self._incoming
 
     def _junction_clear(self, stop, d, v, waited: float) -> bool:

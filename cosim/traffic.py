@@ -765,6 +765,21 @@ class SumoTraffic:
                               sumo_angle_to_yaw(a[2])[keep], a[3][keep], a[4][keep], a[5][keep],
                               a[6][keep], a[7][keep])
 
+    # --- network ------------------------------------------------------------------------
+    def incoming_lanes(self) -> dict[str, list[str]]:
+        """lane -> the normal lanes with a link into it (one call: cached per network)."""
+        key = (self._generation, str(self.net_file))
+        if getattr(self, "_incoming_key", None) != key:
+            s = self._require()
+            inc: dict = {}
+            for lane in s.lane.getIDList():
+                if lane.startswith(":"):
+                    continue
+                for link in s.lane.getLinks(lane):
+                    inc.setdefault(link[0], []).append(lane)
+            self._incoming, self._incoming_key = inc, key
+        return self._incoming
+
     # --- traffic lights -----------------------------------------------------------------
     def tls_states(self) -> dict[str, str]:
         """tls id -> SUMO state string ('rGyy...', one char per controlled link)."""
