@@ -65,6 +65,58 @@ def world_for(name: str, workdir: Path, chunks: int) -> str | None:
     return str(out)
 
 
+def _clusters(worst: list, swaps: list, path_changes: list, gap_s: float = 1.5) -> list:
+    """Runs of steps with |lateral error| > 0.5 m (moving): start time, steps, worst error,
+    its lane, speed, position, steering command, and whether a SUMO network swap or a new
+    lane path came in the 5 s before (a re-plan, not the steering, may have moved the line)."""
+    runs = []
+    for w in sorted(worst, key=lambda w: w[1]):
+        if runs and w[1] - runs[-1][-1][1] <= gap_s:
+            runs[-1].append(w)
+        else:
+            runs.append([w])
+    out = []
+    for r in runs:
+        top = max(r)
+        t0 = r[0][1]
+        out.append({"t": t0, "steps": len(r), "max": top[0], "lane": top[2], "speed": top[3], "x": top[4],
+                    "y": top[5], "steer": top[6],
+                    "after_swap": any(t0 - 5.0 <= s <= t0 + 0.05 for s in swaps),
+                    "after_new_path": any(t0 - 5.0 <= s <= t0 + 0.05 for s in path_changes)})
+    return sorted(out, key=lambda c: -c["max"])[:12]
+
+
+def _describe_collision(sim, ev: dict, ego) -> dict:
+    """A collision-log entry with what the autopilot saw and where the other party was, in the
+    ego's frame (x forward, y left): who hit whom."""
+    import math
+
+    out = dict(ev)
+    ap = sim.driver
+    out.update({"reason": ap.reason, "target": round(ap.target_speed, 2), "lane": ego.lane,
+                "offset": round(ego.lateral_offset_m, 2),
+                "lead": None if ap.lead is None else [ap.lead.kind, ap.lead.source, ap.lead.actor,
+                                                      round(ap.lead.gap, 2), round(ap.lead.speed, 2)]})
+    snap = sim.last_snapshot
+    if ev.get("with") == "actor" and snap is not None:
+        try:
+            i = snap.index(ev["what"])
+            c, s = math.cos(ego.yaw), math.sin(ego.yaw)
+            dx, dy = float(snap.x[i]) - ego.x, float(snap.y[i]) - ego.y
+            out["other"] = {"kind": str(snap.kind[i]), "fwd": round(dx * c + dy * s, 2),
+                            "left": round(-dx * s + dy * c, 2), "speed": round(float(snap.speed[i]), 2),
+                            "rel_yaw_deg": round(math.degrees(math.remainder(float(snap.yaw[i]) - ego.yaw,
+                                                                            2 * math.pi)), 1),
+                            "length": round(float(snap.length[i]), 2)}
+            try:
+                out["other"]["lane"] = sim.traffic.sumo.vehicle.getLaneID(ev["what"])
+            except Exception:
+                pass
+        except KeyError:
+            pass
+    return out
+
+
 def drive(world: str, duration: float, traffic, seed: int, speed: float, start=None, goal=None) -> dict:
     cfg = SimConfig(world_dir=world, traffic=traffic, seed=seed, speed_mps=speed, duration_s=duration,
                     start=start, goal=goal)
@@ -72,6 +124,9 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
     sim.physics.load_budget_ms = 1e9
     lat, cruise_err, rows, worst = [], [], [], []
     off_road = 0
+    off_events, collisions, n_coll = [], [], 0
+    swaps, path_changes = [], []
+    last_gen, last_path = getattr(sim.traffic, "_generation", 0), sim.path
     reroutes = 0
     blocked_since = None
     settled = False
@@ -82,10 +137,18 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
         for _ in range(n):
             ego = sim.step()
             ap = sim.driver
+            gen = getattr(sim.traffic, "_generation", 0)
+            if gen != last_gen:
+                swaps.append(round(ego.t, 1))
+                last_gen = gen
+            if sim.path is not last_path:
+                path_changes.append(round(ego.t, 1))
+                last_path = sim.path
             if ego.speed > 2.0:
                 lat.append(abs(ego.lateral_offset_m))
                 if abs(ego.lateral_offset_m) > 0.5:
-                    worst.append((round(abs(ego.lateral_offset_m), 2), round(ego.t, 1), ego.lane, round(ego.speed, 1)))
+                    worst.append((round(abs(ego.lateral_offset_m), 2), round(ego.t, 1), ego.lane, round(ego.speed, 1),
+                                  round(ego.x, 1), round(ego.y, 1), round(float(ap.last[2]), 2)))
             if not ego.on_road:
                 off_road += 1
             if ap.reason == "cruise" and abs(ap.target_speed - speed) < 1e-6:
@@ -96,6 +159,13 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
             else:
                 settled = False
             rows.append((ego.t, ego.x, ego.y, ego.z, ego.speed, ap.reason, settled))
+            if not ego.on_road and len(off_events) < 20 and (not off_events or ego.t - off_events[-1]["t"] > 3.0):
+                off_events.append({"t": round(ego.t, 1), "x": round(ego.x, 1), "y": round(ego.y, 1),
+                                   "lane": ego.lane, "offset": round(ego.lateral_offset_m, 2),
+                                   "speed": round(ego.speed, 2)})
+            for ev in sim.collision_log[n_coll:]:
+                collisions.append(_describe_collision(sim, ev, ego))
+            n_coll = len(sim.collision_log)
             if goal is not None and sim.summary.arrived:
                 break
             # re-plan when the way stays blocked (the world's edge, a pole standing in a lane)
@@ -135,6 +205,10 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
         "reroutes": reroutes, "arrived": summary.arrived,
         "near_miss_events": [e for e in stats.events if e[1] == "near miss"][:10],
         "lat_worst": sorted(worst, reverse=True)[:5],
+        "lat_clusters": _clusters(worst, swaps, path_changes),
+        "network_swaps": swaps, "path_changes": len(path_changes),
+        "off_road_share": round(off_road / max(1, len(rows)), 5), "off_road_events": off_events,
+        "collision_log": collisions,
     }
     if goal is not None:
         # the grade from the car's own track (+-1 s) where it held the set speed
@@ -191,7 +265,7 @@ def main():
         print(f"helsinki-{args.long:.0f}s: {json.dumps(r)}", flush=True)
     print()
     cols = ["km", "lat_p50", "lat_p95", "lat_p99", "lat_max", "lat_within_0.5", "speed_err_p95", "speed_err_max",
-            "stops_per_km", "near_misses_per_km", "time_gap_p5_s", "ego_collisions", "reroutes"]
+            "stops_per_km", "near_misses_per_km", "time_gap_p5_s", "ego_collisions", "off_road_share", "reroutes"]
     print("| run | " + " | ".join(cols) + " |")
     print("|---" * (len(cols) + 1) + "|")
     for name, r in results.items():
