@@ -11,7 +11,8 @@ Speed (a city network is ~10 MB of XML, read while the rest of the build waits):
 * only ``edge``, ``junction``, ``tlLogic`` and ``location`` elements are handled, and parsing
   stops at the first ``connection`` (netconvert writes connections, roundabouts and nothing
   else the builder needs after the junctions);
-* all shapes (``"x,y x,y ..."``) are collected as strings and parsed in one numpy call;
+* shapes (``"x,y x,y ..."``) are collected as strings and parsed a few thousand at a time
+  in one numpy call, as the file is read;
 * permissions are resolved once per distinct (allow, disallow) pair;
 * :func:`read_net_while_written` reads netconvert's output while netconvert is still writing
   it (writing a city network takes netconvert a quarter of its run, and what the builder
@@ -194,13 +195,25 @@ def read_net(path: str | Path, internal: bool = True) -> RoadNet:
         return _read(f, internal)
 
 
+#: shapes are parsed in batches while the file is read (the last batch is all that is left
+#: to parse when the reading ends, which is when netconvert has written the junctions)
+SHAPE_BATCH = 2000
+
+
 def _read(f, internal: bool) -> RoadNet:
     edges: dict = {}
     junctions: dict = {}
     tls: list = []
     location: dict = {}
-    shape_str: list = []        # every shape string, parsed at the end in one go
+    shape_str: list = []        # shape strings not parsed yet, parsed SHAPE_BATCH at a time
     shape_dst: list = []        # (object, attribute) that gets each parsed shape
+
+    def parse_pending():
+        for (obj, attr), shp in zip(shape_dst, _parse_shapes(shape_str)):
+            setattr(obj, attr, shp)
+        shape_str.clear()
+        shape_dst.clear()
+
     wanted = ("edge", "junction", "tlLogic", "location", "connection")
     it = _etree.iterparse(f, events=("end",), tag=wanted) if _LXML else _etree.iterparse(f, events=("end",))
     for _, el in it:
@@ -250,6 +263,7 @@ def _read(f, internal: bool) -> RoadNet:
         else:
             continue                # ElementTree: every element comes through; keep children
         el.clear()
-    for (obj, attr), shp in zip(shape_dst, _parse_shapes(shape_str)):
-        setattr(obj, attr, shp)
+        if len(shape_str) >= SHAPE_BATCH:
+            parse_pending()
+    parse_pending()
     return RoadNet(edges=edges, junctions=junctions, tls_ids=tls, location=location)
