@@ -199,6 +199,43 @@ def test_chunk_terrain_is_seamless_and_levelled_under_roads(helsinki):
             assert np.array_equal(z[-1, :], chunks[(i, j + 1)][0, :])
 
 
+def test_net_read_in_shape_batches_is_the_same_network(helsinki, monkeypatch):
+    """The reader parses shapes a batch at a time as it reads (the build reads netconvert's
+    file while it is written): the same shapes as one batch for the whole file."""
+    import netgen.roadnet as roadnet
+
+    out, w, _ = helsinki
+    a = read_net(out / w["net_file"])
+    assert len(a.edges) > 2 * roadnet.SHAPE_BATCH            # several batches
+    monkeypatch.setattr(roadnet, "SHAPE_BATCH", 10 ** 9)
+    b = read_net(out / w["net_file"])
+    assert a.edges.keys() == b.edges.keys() and a.junctions.keys() == b.junctions.keys()
+    for k, e in a.edges.items():
+        f = b.edges[k]
+        assert (e.raw_shape is None) == (f.raw_shape is None)
+        assert e.raw_shape is None or np.array_equal(e.raw_shape, f.raw_shape)
+        assert [l.id for l in e.lanes] == [l.id for l in f.lanes]
+        assert all(np.array_equal(l.shape, m.shape) for l, m in zip(e.lanes, f.lanes))
+    assert all(np.array_equal(j.shape, b.junctions[k].shape) for k, j in a.junctions.items())
+
+
+def test_build_leaves_the_garbage_collector_as_it_was(helsinki):
+    """The build freezes the collector's view of its objects while it runs (see
+    netgen.build._gc_freeze) and unfreezes it after, also when the caller froze objects."""
+    import gc
+
+    assert gc.get_freeze_count() == 0           # the helsinki fixture built in this process
+    gc.freeze()
+    try:
+        frozen = gc.get_freeze_count()
+        build_world(WorldConfig(preset="kouvola", chunks=0, out=str(helsinki[0].parent / "kouvola-gc"),
+                                cache_dir=str(helsinki[2])))
+        # the caller's frozen objects stay frozen (some may have been freed), the build's are not added
+        assert 0 < gc.get_freeze_count() <= frozen
+    finally:
+        gc.unfreeze()
+
+
 def test_rebuild_reuses_the_world(helsinki):
     out, w, cache = helsinki
     t0 = time.perf_counter()
