@@ -12,13 +12,17 @@ and a world of (2 * rings + 1)^2 chunks of 1 km, it times, side by side in one r
 Figures are medians over --repeat runs; ratios are full build / netconvert alone (goal <= 1.3)
 and the cached rebuild time (goal <= 2 s). Nothing is asserted: this machine is noisy. The
 load average is printed with each place: the build keeps both cores busy after netconvert,
-so other work on the machine slows it more than it slows netconvert alone.
+so other work on the machine slows it more than it slows netconvert alone. CPU seconds are
+printed too (netconvert alone, and the whole build: this process, netconvert and the forked
+writers): with one core taken by other work, netconvert alone still gets the other core,
+while in the build it shares it with the build's own work, so the build's CPU time decides.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import resource
 import shutil
 import statistics
 import subprocess
@@ -50,15 +54,22 @@ def places(rings):
     return [(n, dict(kw, chunks=rings)) for n, kw in out]
 
 
-def netconvert_alone(cfg: WorldConfig, cache: Path, out: Path) -> float:
+def _cpu() -> float:
+    """CPU seconds of this process and of its children that have been waited for."""
+    s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
+
+
+def netconvert_alone(cfg: WorldConfig, cache: Path, out: Path) -> tuple[float, float]:
+    """(wall, CPU) seconds of netconvert alone."""
     name, centre, source, preset = resolve_place(cfg)
     frame = WorldFrame(centre[0], centre[1], cfg.chunk_size_m)
     bbox = frame.bbox_lonlat(frame.extent(frame.ring(cfg.chunks)), margin_m=50.0)
     osm_xml, _ = to_osm_xml(Path(source["file"]), cache)
     args = sumo_net.netconvert_args(osm_xml, out, frame.proj_string, bbox)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), _cpu()
     subprocess.run(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=sumo_net.sumo_env(), check=True)
-    return time.perf_counter() - t0
+    return time.perf_counter() - t0, _cpu() - c0
 
 
 def main(argv=None):
@@ -73,17 +84,20 @@ def main(argv=None):
     for name, kw in places(a.rings):
         if only and name not in only:
             continue
-        nc, full, cached, stages = [], [], [], []
+        nc, full, cached, stages, nc_cpu, full_cpu = [], [], [], [], [], []
         for r in range(a.repeat):
             tmp = Path(tempfile.mkdtemp(prefix="bench-build-"))
             try:
                 cfg = WorldConfig(**kw, quality=a.quality, out=str(tmp / "w"), cache_dir=str(tmp / "cache"))
                 # OSM conversion is cached first so both sides read the same XML
-                nc.append(netconvert_alone(cfg, tmp / "cache", tmp / "alone.net.xml"))
+                t_nc, c_nc = netconvert_alone(cfg, tmp / "cache", tmp / "alone.net.xml")
+                nc.append(t_nc)
+                nc_cpu.append(c_nc)
                 shutil.rmtree(tmp / "cache" / "osm", ignore_errors=True)
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), _cpu()
                 w = build_world(cfg)
                 full.append(time.perf_counter() - t0)
+                full_cpu.append(_cpu() - c0)    # this process, netconvert and the forked writers
                 stages.append(w["timings_s"])
                 t0 = time.perf_counter()
                 w2 = build_world(WorldConfig(**kw, quality=a.quality, out=str(tmp / "w"), cache_dir=str(tmp / "cache")))
@@ -100,6 +114,9 @@ def main(argv=None):
               f"{w['counts']['buildings']} buildings, world {size / 1e6:.1f} MB (load average {load})")
         print(f"   netconvert alone {m_nc:6.2f} s | full build {m_full:6.2f} s | ratio {m_full / m_nc:4.2f} "
               f"(goal <= 1.3) | cached rebuild {m_cached:5.2f} s (goal <= 2)")
+        m_ncc, m_fc = statistics.median(nc_cpu), statistics.median(full_cpu)
+        print(f"   CPU: netconvert alone {m_ncc:5.2f} s ({m_ncc / m_nc:.0%} of a core) | full build {m_fc:5.2f} s "
+              f"(netconvert {min(m_ncc / m_fc, 1.0):.0%} of it)")
         print("   stages (s): " + ", ".join(f"{k} {v}" for k, v in st.items()))
         sys.stdout.flush()
     print("\nsummary: place, netconvert s, build s, ratio, cached s")
