@@ -166,8 +166,11 @@ def _on_lane(t, args) -> bool:
 
 def _serve(conn):
     """Worker main loop: one SumoTraffic, requests answered in order."""
+    import faulthandler
+
     from cosim.traffic import SumoTraffic
 
+    faulthandler.enable()      # a crash inside libsumo names the call on stderr
     args, kwargs, log_level = conn.recv()
 
     fwd = _LogForward()

@@ -56,7 +56,8 @@ EGO_ID = "ego"
 PROBE_ID = "cosim_probe"
 CONTEXT_MARGIN = 20.0   # m: front-bumper anchors vs centre distances (half a bus + half the ego)
 DEFAULT_CONTEXT_RADIUS = 150.0
-EGO_MATCH_RADIUS_M = 15.0   # the ego is mapped onto a lane within this distance, else off the network
+EGO_MATCH_RADIUS_M = 15.0
+EGO_UNSTICK_M = 0.015       # see _after_step: a long-waiting ego jitters this much in SUMO   # the ego is mapped onto a lane within this distance, else off the network
 
 _LIBSUMO_OWNER = None   # the SumoTraffic running on libsumo in this process, if any
 
@@ -237,6 +238,8 @@ class SumoTraffic:
         self._ego_added = False
         self._ego_pending_speed: float | None = None
         self._ego_off_network = False
+        self._ego_unstick = False
+        self._unstick_sign = 1.0
         self._ctx_anchor: str | None = None
         self._ctx_radius = DEFAULT_CONTEXT_RADIUS
         self._probe_xy: tuple | None = None
@@ -474,6 +477,11 @@ class SumoTraffic:
         if self._ego_in_sim and self._ego_pending_speed is not None:
             try:
                 s.vehicle.setPreviousSpeed(EGO_ID, self._ego_pending_speed)
+                # SUMO teleports (and at a route's end removes) a vehicle that stood still for
+                # time-to-teleport, the remote-controlled ego too, and its drivers then do not
+                # see it for a moment: an ego waiting that long is moved back and forth by
+                # EGO_UNSTICK_M in SUMO only (set_ego_pose), which resets SUMO's waiting time
+                self._ego_unstick = s.vehicle.getWaitingTime(EGO_ID) > 0.5 * self.time_to_teleport
             except self._exc:
                 pass
         n_tele = int(r.get(tc.VAR_TELEPORT_STARTING_VEHICLES_NUMBER, 0))
@@ -579,6 +587,10 @@ class SumoTraffic:
         if not self._ego_added:
             raise SimulationError("add_ego() must come before set_ego_pose()")
         angle = yaw_to_sumo_angle(yaw)
+        if self._ego_unstick:
+            self._unstick_sign = -self._unstick_sign
+            x += self._unstick_sign * EGO_UNSTICK_M * math.cos(yaw)
+            y += self._unstick_sign * EGO_UNSTICK_M * math.sin(yaw)
         fx, fy = center_to_front(x, y, angle, self._ego_spec["length"])
         try:
             # matchThreshold: lanes are searched within this radius only (SUMO's default of

@@ -340,6 +340,32 @@ def test_forced_red_reported_by_ego_next_tls(traffic):
     assert t.ego_next_tls()[2] in "gG"
 
 
+def test_ego_waiting_at_red_is_never_teleported(traffic):
+    """SUMO teleports a vehicle that stood still for time-to-teleport, the remote-controlled
+    ego too (and removes it at its route's end): an ego held at a red light far longer than
+    that stays where it is, in SUMO, all the time."""
+    t = traffic(time_to_teleport=5.0)
+    s = t.sumo
+    lane = next(l for l in t._lane_tls if not l.startswith(":") and s.lane.getLength(l) > 40
+                and "passenger" in s.lane.getAllowed(l))
+    tid = t._lane_tls[lane][0]
+    fx, fy, angle = lane_pose(s, lane, s.lane.getLength(lane) - 2.0)
+    cx, cy = front_to_center(fx, fy, angle, 4.5)
+    t.add_ego([lane.rsplit("_", 1)[0]])
+    n = len(s.trafficlight.getRedYellowGreenState(tid))
+    worst = 0.0
+    for _ in range(300):                                    # 30 s = 6 x time-to-teleport
+        t.set_ego_pose(cx, cy, sumo_angle_to_yaw(angle), 0.0)
+        t.set_tls_state(tid, "r" * n)
+        t.step()
+        st = t.ego_state()
+        assert st is not None and st["lane"] == lane
+        worst = max(worst, math.hypot(st["x"] - cx, st["y"] - cy))
+    assert t.stats.teleports == 0
+    assert worst < 0.05                                      # the unsticking jitter is 1.5 cm
+    assert s.vehicle.getSpeed(EGO_ID) == 0.0                 # SUMO's drivers see it standing
+
+
 # --- errors and lifecycle -------------------------------------------------------------------
 def test_corrupt_net_gives_one_line_error(helsinki_net, tmp_path):
     truncated = tmp_path / "truncated.net.xml"
