@@ -129,13 +129,18 @@ class PhysicsWorld:
         """True when every tile touching the disc (x, y, r) is built and loaded."""
         return all(k in self.tiles for k in self.world.tiles_within(x, y, r))
 
-    def refresh(self, chunks) -> int:
-        """Unload the loaded tiles of chunks that a new window replaced (they reload from the
-        new build on the next update). Returns how many were unloaded."""
+    def refresh(self, chunks, near: tuple | None = None) -> int:
+        """Replace the loaded tiles of chunks that a new window replaced: those within
+        ``near`` = (x, y, radius) at once (the sensors must never see a hole), the others on
+        later updates. Returns how many were unloaded."""
         chunks = set(chunks)
         keys = [k for k in self.tiles if (k[0], k[1]) in chunks]
         for k in keys:
             self.unload_tile(k)
+        if near is not None:
+            for k in self.world.tiles_within(*near):
+                if k not in self.tiles and self.world.is_built(k):
+                    self.load_tile(k)
         return len(keys)
 
     def load_tile(self, key):

@@ -18,6 +18,7 @@ The same class is the Python API (see README) behind ``cosim run``, scenario fil
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import random
@@ -310,30 +311,32 @@ class Simulation:
         if not pipelined:
             self.traffic.set_ego_pose(st.x, st.y, st.yaw, max(0.0, st.speed))
             self.traffic.step()
-        # pipelined: SUMO's state after the step sent in the previous frame (waits for it)
-        snap = self.traffic.actors_near(st.x, st.y, cfg.mirror_radius_m)
-        self.t += cfg.step_length_s
-        self.last_snapshot = snap
-        self.mirror.update(snap, ego=(st.x, st.y, st.yaw, self.vehicle.spec.length, self.vehicle.spec.width))
-        # driving
-        k, s_here, lat_off = self.path.project(st.x, st.y, self._path_idx)
-        self._path_idx = k
-        if self.keyboard is not None:
-            if cfg.gui:
-                from .keyboard import pybullet_keys
-
-                pybullet_keys(self.physics.client, self.keyboard)
-            self.manual = self.keyboard.update(cfg.step_length_s)
-        if self.manual is not None:
-            throttle, brake, steer = self.manual
+            snap = self.traffic.actors_near(st.x, st.y, cfg.mirror_radius_m)
         else:
-            throttle, brake, steer = self.driver.control(st, s_here, snap, cfg.step_length_s)
-        self.last_control = (throttle, brake, steer)
-        if pipelined:
-            # SUMO steps in its worker process while the physics below runs (nothing from
-            # here to the end of the frame waits for SUMO, except a network swap)
+            # SUMO's state after the step sent in the previous frame (waits for it, if it is
+            # not done yet); then SUMO's next step starts in its worker process and runs
+            # while the driver (on this state: lagged_reads) and the physics below run
+            snap = self.traffic.actors_near(st.x, st.y, cfg.mirror_radius_m)
             self.traffic.set_ego_pose(st.x, st.y, st.yaw, max(0.0, st.speed))
             self.traffic.step()
+        with self.traffic.lagged_reads() if pipelined else contextlib.nullcontext():
+            self.t += cfg.step_length_s
+            self.last_snapshot = snap
+            self.mirror.update(snap, ego=(st.x, st.y, st.yaw, self.vehicle.spec.length, self.vehicle.spec.width))
+            # driving
+            k, s_here, lat_off = self.path.project(st.x, st.y, self._path_idx)
+            self._path_idx = k
+            if self.keyboard is not None:
+                if cfg.gui:
+                    from .keyboard import pybullet_keys
+
+                    pybullet_keys(self.physics.client, self.keyboard)
+                self.manual = self.keyboard.update(cfg.step_length_s)
+            if self.manual is not None:
+                throttle, brake, steer = self.manual
+            else:
+                throttle, brake, steer = self.driver.control(st, s_here, snap, cfg.step_length_s)
+            self.last_control = (throttle, brake, steer)
         self.vehicle.apply_control(throttle, brake, steer)
         self.vehicle.step(self.substeps)
         self._check_collisions()

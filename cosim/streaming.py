@@ -20,8 +20,12 @@ drive a whole chunk while the next window is built.
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
+import os
+import socket
+import subprocess
+import sys
 import time
+from multiprocessing.connection import Connection
 from pathlib import Path
 
 log = logging.getLogger("cosim.streaming")
@@ -81,10 +85,18 @@ class WorldStreamer:
         ij = self.sim.world.frame.chunk_of(x, y)
         if self.proc is None and ij != self.center and ij not in self.built:
             self._start(ij)
-        if self.proc is not None and self.conn.poll():
-            status, out, routes = self.conn.recv()
-            self.proc.join(timeout=5)
+        if self.proc is not None and (self.conn.poll() or self.proc.poll() is not None):
+            try:
+                status, out, routes = self.conn.recv()
+            except (EOFError, OSError):
+                status, out, routes = "error", f"the build process ended with exit code {self.proc.poll()}", []
+            try:
+                self.proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
             self.proc = None
+            self.conn.close()
+            self.conn = None
             self.build_s.append(round(time.perf_counter() - self.job_started, 2))
             window, self.job_window = self.job_window, None
             if status != "ok":
@@ -97,14 +109,18 @@ class WorldStreamer:
     def _start(self, window):
         cfg = self.sim.cfg
         out = str(self.sim.world.path / "windows" / f"{window[0]}_{window[1]}")
-        ctx = mp.get_context("spawn")
-        parent, child = ctx.Pipe(duplex=False)
-        self.proc = ctx.Process(target=_build_window, daemon=False,   # the build forks its own writers
-                                args=(self.base_cfg, window, out, cfg.traffic, cfg.seed,
-                                      max(cfg.duration_s, 60.0) + 60.0, child))
-        self.proc.start()
+        # a plain interpreter running this module (multiprocessing's spawn would re-run the
+        # caller's __main__ in the child: a user's script without a main guard would start a
+        # second simulation there)
+        parent, child = socket.socketpair()
+        env = dict(os.environ)
+        root = str(Path(__file__).resolve().parents[1])
+        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        self.proc = subprocess.Popen([sys.executable, "-m", "cosim.streaming", str(child.fileno())],
+                                     pass_fds=(child.fileno(),), env=env)
         child.close()
-        self.conn = parent
+        self.conn = Connection(parent.detach())
+        self.conn.send((self.base_cfg, window, out, cfg.traffic, cfg.seed, max(cfg.duration_s, 60.0) + 60.0))
         self.job_window = window
         self.job_started = time.perf_counter()
         log.info("building the window around chunk %s in the background", window)
@@ -113,7 +129,8 @@ class WorldStreamer:
         sim = self.sim
         t0 = time.perf_counter()
         changed = sim.world.add_window(out)
-        sim.physics.refresh(changed)
+        st = sim.vehicle.state()
+        sim.physics.refresh(changed, near=(st.x, st.y, sim.keep_radius))
         mapping = sim.traffic.swap_network(sim.world.net_file, routes, keep_radius=sim.cfg.mirror_radius_m)
         sim.mirror.rekey(mapping)
         sim.replan()
@@ -127,8 +144,16 @@ class WorldStreamer:
     def teardown(self):
         if self.proc is not None:
             self.proc.terminate()           # its output is written atomically: nothing half-built stays valid
-            self.proc.join(timeout=10)
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
             self.proc = None
         if self.conn is not None:
             self.conn.close()
             self.conn = None
+
+
+if __name__ == "__main__":
+    _conn = Connection(int(sys.argv[1]))
+    _build_window(*_conn.recv(), _conn)

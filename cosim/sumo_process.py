@@ -24,6 +24,7 @@ Log records of the worker (teleports, collisions, warnings) are re-emitted in th
 """
 from __future__ import annotations
 
+import contextlib
 import inspect
 import logging
 import math
@@ -270,6 +271,7 @@ class TrafficProcess:
         self._prefetched: dict = {}
         self._prefetch_keys: dict = {}
         self._steps = 0
+        self._lagged = False       # lagged_reads(): reads answered from the last step's prefetch
         self._actors_req = None    # (x, y, radius) of the actors query sent with the step
         self._actors_radius = None
         self._last_pose = None
@@ -401,8 +403,18 @@ class TrafficProcess:
             except TypeError:      # unhashable arguments
                 static = False
         elif _is_read(path) and not kwargs:
-            self.sync()
             key = (path, args)
+            if self._lagged:
+                try:
+                    hit = self._prefetched.get(key)
+                except TypeError:
+                    hit = None
+                if hit is not None:             # the state the step in flight started from
+                    self._prefetch_keys[key] = self._steps
+                    if hit[0] == "err":
+                        raise hit[1]
+                    return hit[1]
+            self.sync()
             try:
                 self._prefetch_keys[key] = self._steps
                 hit = self._prefetched.get(key)
@@ -444,13 +456,25 @@ class TrafficProcess:
         if self._last_pose is not None and self._actors_radius is not None:
             self._actors_req = (self._last_pose[0], self._last_pose[1], self._actors_radius + ACTORS_MARGIN_M)
             keys.append((("actors_near",), self._actors_req))
-        self._prefetched = {}
         self._post(("step", tuple(keys), (), {}))
+
+    @contextlib.contextmanager
+    def lagged_reads(self):
+        """Inside: reads the caller made after recent steps, and the attributes shipped with
+        every answer, come from the last step received, without waiting for a step in flight.
+        The loop posts SUMO's next step, then runs its driver on the state that step started
+        from while SUMO computes. Other calls still wait (and see the newer state)."""
+        self._lagged = True
+        try:
+            yield self
+        finally:
+            self._lagged = False
 
     def set_ego_pose(self, x, y, *args, **kwargs) -> None:
         """Sent without waiting (its errors come with the next answer)."""
         self._last_pose = (float(x), float(y))
-        self._prefetched = {}
+        # (SUMO moves the ego in its next step: reads until then see the state before, as
+        # in-process; so the prefetched answers stay valid)
         self._post(("call", ("set_ego_pose",), (x, y) + args, kwargs))
 
     def actors_near(self, x: float, y: float, radius: float):
@@ -484,7 +508,7 @@ class TrafficProcess:
             raise AttributeError(name)
         state = self.__dict__.get("_state", {})
         if name in _STATE:
-            if self.__dict__.get("_conn") is not None:
+            if self.__dict__.get("_conn") is not None and not self.__dict__.get("_lagged"):
                 self.sync()
             if name in state:
                 return state[name]
@@ -495,4 +519,9 @@ class TrafficProcess:
 
 
 if __name__ == "__main__":
-    _serve(Connection(int(sys.argv[1])))
+    if os.environ.get("COSIM_WORKER_PROFILE"):      # a cProfile dump of the worker, for benchmarks
+        import cProfile
+
+        cProfile.run("_serve(Connection(int(sys.argv[1])))", os.environ["COSIM_WORKER_PROFILE"])
+    else:
+        _serve(Connection(int(sys.argv[1])))

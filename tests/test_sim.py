@@ -40,35 +40,41 @@ def test_drive_across_a_chunk_border_with_traffic(motorway_world, tmp_path, para
     mirror_checked = 0
     try:
         sumo = sim.traffic.sumo
-        send_step = sim.traffic.step
+        update = sim.mirror.update
 
-        def check_then_step():
-            # right before SUMO is stepped, SUMO's state is the one the mirror shows (in both
-            # modes): mirrored bodies against SUMO's own getters (an independent conversion)
+        def update_then_check(snap, ego=None):
+            # mirrored bodies, right after the mirror took SUMO's state in, against SUMO's own
+            # getters (an independent conversion). With SUMO in its worker process, SUMO has
+            # already started its next step by then; its answers for the mirrored state are the
+            # ones shipped with the step (test_sumo_process holds them to the in-process ones),
+            # so the bodies are held to the snapshot there.
             nonlocal mirror_checked
-            snap = sim.last_snapshot
-            if snap is not None and sim.mirror.held == 0:
-                ids = sumo.vehicle.getIDList()
-                for k in range(min(len(snap), 5)):
-                    aid = snap.ids[k]
-                    if snap.kind[k] == "person" or aid not in ids:
-                        continue
-                    body = sim.mirror.body_of(aid)
-                    if body is None:
-                        continue
+            out = update(snap, ego)
+            if sim.mirror.held:
+                return out
+            ids = set(sumo.vehicle.getIDList()) if not parallel else None
+            for k in range(min(len(snap), 5)):
+                aid = snap.ids[k]
+                if snap.kind[k] == "person" or (ids is not None and aid not in ids):
+                    continue
+                body = sim.mirror.body_of(aid)
+                if parallel:
+                    cx, cy, yaw0, h = snap.x[k], snap.y[k], snap.yaw[k], snap.height[k]
+                else:
                     fx, fy = sumo.vehicle.getPosition(aid)
                     ang = sumo.vehicle.getAngle(aid)
                     cx, cy = front_to_center(fx, fy, ang, sumo.vehicle.getLength(aid))
-                    (bx, by, bz), q = pb.getBasePositionAndOrientation(body, physicsClientId=sim.physics.client)
-                    yaw = pb.getEulerFromQuaternion(q)[2]
-                    assert math.hypot(bx - cx, by - cy) < 0.05
-                    assert abs(math.remainder(yaw - sumo_angle_to_yaw(ang), 2 * math.pi)) < 0.01
-                    gz = float(sim.world.ground_z(cx, cy)[0])
-                    assert abs(bz - sumo.vehicle.getHeight(aid) / 2 - gz) < 0.3
-                    mirror_checked += 1
-            send_step()
+                    yaw0, h = sumo_angle_to_yaw(ang), sumo.vehicle.getHeight(aid)
+                (bx, by, bz), q = pb.getBasePositionAndOrientation(body, physicsClientId=sim.physics.client)
+                yaw = pb.getEulerFromQuaternion(q)[2]
+                assert math.hypot(bx - cx, by - cy) < 0.05
+                assert abs(math.remainder(yaw - yaw0, 2 * math.pi)) < 0.01
+                gz = float(sim.world.ground_z(cx, cy)[0])
+                assert abs(bz - h / 2 - gz) < 0.3
+                mirror_checked += 1
+            return out
 
-        sim.traffic.step = check_then_step
+        sim.mirror.update = update_then_check
         for _ in range(int(70 / 0.1)):
             sim.step()
         # the ego is in SUMO where physics has it
@@ -118,3 +124,38 @@ def test_start_far_from_roads_is_a_clear_error(motorway_world, tmp_path):
                        timeout=600, cwd=tmp_path)
     assert r.returncode == 2
     assert r.stderr.strip().splitlines()[-1].startswith("error: start is ") and "from the nearest road" in r.stderr
+
+
+def test_next_window_built_in_background_and_swapped_in(motorway_world):
+    """Past a chunk border the window around the car's new chunk is built in a worker process
+    (netconvert, layers, demand); when it is ready the world takes it in and SUMO moves to its
+    network, keeping the actors near the car, and the drive goes on."""
+    import time
+
+    cfg = SimConfig(world_dir=str(motorway_world), traffic="light", seed=3, speed_mps=25.0, duration_s=900.0)
+    sim = Simulation(cfg).setup()
+    try:
+        while sim.streamer.building is None and sim.t < 120.0:
+            sim.step()
+        window = sim.streamer.building
+        assert window is not None and window != (0, 0)
+        assert window == sim.world.frame.chunk_of(sim.vehicle.state().x, sim.vehicle.state().y)
+        deadline = time.time() + 900
+        while sim.streamer.proc.poll() is None and time.time() < deadline:
+            time.sleep(0.5)                       # wall clock: the build runs beside the loop
+        near = set(sim.mirror.active)
+        sim.step()                                # takes the finished window in
+        assert sim.streamer.swaps == 1, sim.streamer.errors
+        assert sim.streamer.center == window
+        assert sim.world.net_file.parent.parent == motorway_world / "windows" / f"{window[0]}_{window[1]}"
+        kept = len(sim.mirror.active)
+        d0 = sim.summary.distance_m
+        for _ in range(200):
+            sim.step()
+        summary = sim.finish()
+    finally:
+        sim.teardown()
+    assert not near or kept >= 0.5 * len(near)   # mirrored actors carried over (re-keyed), not dropped
+    assert summary.distance_m - d0 > 200          # and the car drives on, on the new network
+    assert summary.sensor_range_violations == 0
+    assert summary.ego_collisions == 0, sim.collision_log
