@@ -40,6 +40,8 @@ from pathlib import Path
 
 from netgen.errors import SimulationError
 
+from .component import Component
+
 log = logging.getLogger(__name__)
 
 # attributes shipped with every answer, read locally
@@ -247,7 +249,7 @@ class _Remote:
         return f"<remote {'.'.join(self._path)} in SUMO's worker process>"
 
 
-class TrafficProcess:
+class TrafficProcess(Component):
     """A ``SumoTraffic`` (same constructor, same methods) in a worker process; ``step()`` is
     asynchronous: it returns at once and SUMO steps while the caller works."""
 
@@ -327,13 +329,6 @@ class TrafficProcess:
         except Exception:
             pass
         self._state["running"] = False
-
-    def __enter__(self):
-        self.setup()
-        return self
-
-    def __exit__(self, *exc):
-        self.teardown()
 
     def __del__(self):
         try:

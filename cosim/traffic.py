@@ -50,6 +50,8 @@ import numpy as np
 
 from netgen.errors import SimulationError
 
+from .component import Component
+
 log = logging.getLogger(__name__)
 
 EGO_ID = "ego"
@@ -199,7 +201,7 @@ class _Kept:
 
 
 # --- the component --------------------------------------------------------------------------
-class SumoTraffic:
+class SumoTraffic(Component):
     """One SUMO run: setup() / step() / teardown(), ego injection, actors, traffic lights."""
 
     def __init__(self, net_file, route_files: Sequence = (), step_length: float = 0.1,
@@ -345,13 +347,6 @@ class SumoTraffic:
                 _LIBSUMO_OWNER = None
         self._cleanup_tmp()
         self._reset_run_state()
-
-    def __enter__(self):
-        self.setup()
-        return self
-
-    def __exit__(self, *exc):
-        self.teardown()
 
     def __del__(self):
         try:
