@@ -145,8 +145,10 @@ class Simulation:
             kind = SumoTraffic
             if self.parallel_sumo:
                 from .sumo_process import TrafficProcess as kind
+            cap = demand.max_vehicles
             self.traffic = kind(self.world.net_file, demand.route_files, step_length=cfg.step_length_s,
-                                seed=cfg.seed, backend=cfg.backend, gui=cfg.sumo_gui)
+                                seed=cfg.seed, backend=cfg.backend, gui=cfg.sumo_gui,
+                                extra_args=["--max-num-vehicles", str(cap)] if cap else ())
             self.traffic.setup()
             self._pipelined = kind is not SumoTraffic
             self.progress("physics", 0.0, "loading the physics world")

@@ -366,6 +366,19 @@ def test_ego_waiting_at_red_is_never_teleported(traffic):
     assert s.vehicle.getSpeed(EGO_ID) == 0.0                 # SUMO's drivers see it standing
 
 
+def test_vehicle_cap_keeps_dense_demand_from_locking(dense, traffic):
+    """Demand is planned from free-flow trip times; the cap (SUMO's --max-num-vehicles) holds
+    insertions back once the network holds more than planned."""
+    cap = dense.max_vehicles
+    assert cap == math.ceil(dense.plan.vehicles * 1.5) + 10
+    small = max(20, cap // 8)
+    t = traffic(dense.route_files, seed=1, extra_args=["--max-num-vehicles", str(small)])
+    while t.sim_time < 60.0:
+        t.step()
+        assert t.stats.vehicles <= small
+    assert t.stats.max_vehicles == small          # reached and held
+
+
 # --- errors and lifecycle -------------------------------------------------------------------
 def test_corrupt_net_gives_one_line_error(helsinki_net, tmp_path):
     truncated = tmp_path / "truncated.net.xml"
