@@ -78,6 +78,7 @@ from .osm_features import OSMFeatures, polygonal
 TREE_ROW_SPACING_M = 8.0
 WOOD_M2_PER_TREE = 150.0
 OFF_ROAD_M = 0.5
+POLE_FOOT_M = 0.3           # a pole this close to the carriageway is moved off it (OFF_ROAD_M beyond)
 MAX_MOVE_M = 15.0
 AREA_CELL_M = 10.0
 MAX_AREA_CELLS = 40000
@@ -420,6 +421,15 @@ class PolygonSet:
         return q
 
 
+def _near(road: PolygonSet, x, y, r: float) -> np.ndarray:
+    """Points within about ``r`` of the union: the point or one of 8 around it at ``r`` in it."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    out = road.covers_xy(x, y)
+    for a in np.arange(8) * (np.pi / 4):
+        out |= road.covers_xy(x + r * np.cos(a), y + r * np.sin(a))
+    return out
+
+
 def _radial_exit(x, y, road: PolygonSet, bld: PolygonSet, max_move_m: float, ndir: int = 32,
                  step: float = 0.25):
     """For each point, the nearest point 0.5 m beyond the first exit from the road along one of
@@ -464,7 +474,7 @@ def _radial_exit(x, y, road: PolygonSet, bld: PolygonSet, max_move_m: float, ndi
         f = np.where(pull, OFF_ROAD_M / np.where(pull, L, 1.0), 1.0)
         cx = np.where(pull, q[:, 0] + (cx - q[:, 0]) * f, cx)
         cy = np.where(pull, q[:, 1] + (cy - q[:, 1]) * f, cy)
-        ok = ~road.covers_xy(cx, cy) & ~bld.covers_xy(cx, cy)
+        ok = ~_near(road, cx, cy, POLE_FOOT_M) & ~bld.covers_xy(cx, cy)
         rx[pending[ok]], ry[pending[ok]] = cx[ok], cy[ok]
         pending = pending[~ok]
     return rx, ry
@@ -580,6 +590,10 @@ def place_scenery(plan: SceneryPlan, road_area) -> PlacedScenery:
     in_bld = plan.in_bld
     status[in_bld] = "dropped_building"
     on_road = road.covers_xy(x, y) & ~in_bld
+    # a pole whose foot reaches the carriageway is on it too (OSM puts traffic signals on the
+    # road's own node: at a lane's end the point sits on the edge of both the lane strip and
+    # the junction, where the point test can fall either way, and the pole stood in the lane)
+    on_road |= _near(road, x, y, POLE_FOOT_M) & move_policy & ~in_bld
     status[on_road & ~move_policy] = "dropped_road"
     tomove = np.flatnonzero(on_road & move_policy)
     moved = np.zeros(n)
@@ -596,7 +610,7 @@ def place_scenery(plan: SceneryPlan, road_area) -> PlacedScenery:
             u = np.where(L[:, None] > 1e-9, d / np.maximum(L, 1e-9)[:, None], [1.0, 0.0])
             px[sel] = q[:, 0] + OFF_ROAD_M * u[:, 0]
             py[sel] = q[:, 1] + OFF_ROAD_M * u[:, 1]
-            todo[sel] = road.covers_xy(px[sel], py[sel])
+            todo[sel] = _near(road, px[sel], py[sel], POLE_FOOT_M)
         dist = np.hypot(px - x[tomove], py - y[tomove])
         bad = todo | (dist > max_move_m) | bld.covers_xy(px, py)
         if bad.any():   # squeezed between carriageways or against a wall: search around

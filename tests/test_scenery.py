@@ -22,7 +22,8 @@ from netgen.buildings import footprint_union
 from netgen.frame import WorldFrame
 from netgen.osm_features import extract_features
 from netgen.presets import get_preset
-from netgen.scenery import AREA_STYLE, MAX_MOVE_M, OFF_ROAD_M, PREFAB_KINDS, make_scenery, write_chunk_scenery
+from netgen.scenery import (AREA_STYLE, MAX_MOVE_M, OFF_ROAD_M, POLE_FOOT_M, PREFAB_KINDS, make_scenery,
+                            write_chunk_scenery)
 
 from conftest import REPO, shared_file
 
@@ -198,9 +199,13 @@ def test_poles_are_moved_just_off_the_carriageway(name):
         ox, oy, _ = src[i["kind"]][i["id"]]
         d = math.hypot(i["x"] - ox, i["y"] - oy)
         p0, p1 = shapely.Point(ox, oy), shapely.Point(i["x"], i["y"])
-        if not road.contains(p0):
+        if not road.contains(p0) and road.distance(p0) > POLE_FOOT_M + 0.01:
             assert d == pytest.approx(0.0, abs=2e-3) and "moved_m" not in i   # left where it was
             continue
+        if not road.contains(p0) and road.distance(p0) > POLE_FOOT_M - 0.01:
+            continue      # at the tolerance: either way
+        # on the carriageway, or with its foot (POLE_FOOT_M) on it: moved
+        assert road.distance(p1) >= POLE_FOOT_M - 0.05
         moved += 1
         assert i["moved_m"] == pytest.approx(d, abs=2e-3)
         assert 0.0 < road.distance(p1) <= OFF_ROAD_M + 1e-3          # just beyond the edge
@@ -208,7 +213,9 @@ def test_poles_are_moved_just_off_the_carriageway(name):
         if d <= edge.distance(p0) + OFF_ROAD_M + 2e-3:                 # the nearest such point
             tight += 1
     assert moved > 10
-    assert tight >= 0.9 * moved
+    # (the others were squeezed: their nearest way off left them within POLE_FOOT_M of
+    # another carriageway, so they took the search around; Monaco's narrow streets: 61 of 71)
+    assert tight >= 0.85 * moved
     # most signals stand within ~3 m of their carriageway's edge-side OSM position
     ds = [i["moved_m"] for i in instances(res) if i["kind"] in POLES and "moved_m" in i]
     assert np.median(ds) < 6.0
