@@ -76,6 +76,7 @@ class Summary:
     windows_built: int = 0
     network_swaps: int = 0
     swap_ms_max: float = 0.0
+    sumo_restarts: int = 0           # SUMO's worker process crashed and was started again
     frame_ms_median: float = 0.0
     frame_ms_p999: float = 0.0
     frame_ms_max: float = 0.0
@@ -88,7 +89,12 @@ class Summary:
                 f"({self.max_mirrored} mirrored); tiles loaded {self.tiles_loaded} / unloaded {self.tiles_unloaded}; "
                 f"collisions: ego {self.ego_collisions}, SUMO {self.sumo_collisions}; teleports {self.sumo_teleports}; "
                 f"sensor-range violations {self.sensor_range_violations}; "
-                f"windows built {self.windows_built}, SUMO network swaps {self.network_swaps}.{arr}")
+                f"windows built {self.windows_built}, SUMO network swaps {self.network_swaps}"
+                + (f"; SUMO restarted after a crash {self.sumo_restarts} time(s)" if self.sumo_restarts else "")
+                + f".{arr}")
+
+
+MAX_SUMO_RESTARTS = 5      # a SUMO worker that keeps crashing ends the run
 
 
 class Simulation:
@@ -123,6 +129,7 @@ class Simulation:
         self.keyboard = None               # a cosim.keyboard.KeyboardControl when keys drive
         self.streamer = None
         self._pipelined = False            # SUMO in a worker process (cosim.sumo_process)
+        self._restart_notes: list = []
         self._setup_done = False
 
     # ------------------------------------------------------------------------------------
@@ -146,9 +153,11 @@ class Simulation:
             if self.parallel_sumo:
                 from .sumo_process import TrafficProcess as kind
             cap = demand.max_vehicles
-            self.traffic = kind(self.world.net_file, demand.route_files, step_length=cfg.step_length_s,
-                                seed=cfg.seed, backend=cfg.backend, gui=cfg.sumo_gui,
-                                extra_args=["--max-num-vehicles", str(cap)] if cap else ())
+            self._routes = list(demand.route_files)
+            self._traffic_kind = kind
+            self._traffic_kw = dict(step_length=cfg.step_length_s, seed=cfg.seed, backend=cfg.backend,
+                                    gui=cfg.sumo_gui, extra_args=["--max-num-vehicles", str(cap)] if cap else ())
+            self.traffic = kind(self.world.net_file, self._routes, **self._traffic_kw)
             self.traffic.setup()
             self._pipelined = kind is not SumoTraffic
             self.progress("physics", 0.0, "loading the physics world")
@@ -306,6 +315,36 @@ class Simulation:
     def step(self) -> EgoState:
         if not self._setup_done:
             raise SimulationError("call setup() before step()")
+        try:
+            return self._step()
+        except SimulationError as e:
+            # SUMO in its worker process crashed (libsumo can segfault): start it again on
+            # the same network and demand, with the ego where it is, and go on (the actors
+            # around are new ones). In-process, a crash takes the whole run down.
+            if not self._pipelined or "worker process ended unexpectedly" not in str(e) \
+                    or self.summary.sumo_restarts >= MAX_SUMO_RESTARTS:
+                raise
+            log.warning("%s; starting SUMO again", e)
+            self._restart_traffic()
+            return self._step()
+
+    def _restart_traffic(self):
+        st = self.vehicle.state()
+        try:
+            self.traffic.teardown()
+        except Exception:
+            pass
+        self.traffic = self._traffic_kind(self.world.net_file, self._routes, **self._traffic_kw)
+        self.traffic.setup()
+        self.traffic.add_ego(route_edges=self.route)
+        self.traffic.set_ego_pose(st.x, st.y, st.yaw, max(0.0, st.speed))
+        from .traffic import ActorsSnapshot
+
+        self.mirror.update(ActorsSnapshot.empty(self.t))      # SUMO's actors are all new ones
+        self.summary.sumo_restarts += 1
+        self._restart_notes.append(f"SUMO's worker process crashed at t={self.t:.1f} s and was started again")
+
+    def _step(self) -> EgoState:
         t0 = time.perf_counter()
         cfg = self.cfg
         st = self.vehicle.state()
@@ -592,6 +631,7 @@ class Simulation:
             s.network_swaps = self.streamer.swaps
             s.swap_ms_max = max(self.streamer.swap_ms, default=0.0)
             s.notes = list(self.streamer.errors)
+        s.notes = list(s.notes) + [n for n in self._restart_notes if n not in s.notes]
         return s
 
     def teardown(self):

@@ -132,6 +132,7 @@ class WorldStreamer:
         st = sim.vehicle.state()
         sim.physics.refresh(changed, near=(st.x, st.y, sim.keep_radius))
         mapping = sim.traffic.swap_network(sim.world.net_file, routes, keep_radius=sim.cfg.mirror_radius_m)
+        sim._routes = list(routes)          # what SUMO restarts on, should its worker crash
         sim.mirror.rekey(mapping)
         sim.replan()
         self.center = window

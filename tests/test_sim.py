@@ -159,3 +159,30 @@ def test_next_window_built_in_background_and_swapped_in(motorway_world):
     assert summary.distance_m - d0 > 200          # and the car drives on, on the new network
     assert summary.sensor_range_violations == 0
     assert summary.ego_collisions == 0, sim.collision_log
+
+
+def test_sumo_worker_crash_is_survived(motorway_world):
+    """libsumo can segfault; in its worker process that ends only SUMO, which the loop starts
+    again on the same network with the ego where it is (the run's summary says so)."""
+    import signal
+
+    cfg = SimConfig(world_dir=str(motorway_world), traffic="light", seed=3, speed_mps=25.0, duration_s=30.0,
+                    parallel_sumo=True)
+    sim = Simulation(cfg).setup()
+    try:
+        for _ in range(50):
+            sim.step()
+        old = sim.traffic._proc.pid
+        os.kill(old, signal.SIGKILL)
+        for _ in range(150):
+            sim.step()
+        eg = sim.traffic.ego_state()
+        st = sim.vehicle.state()
+        summary = sim.finish()
+    finally:
+        sim.teardown()
+    assert summary.sumo_restarts == 1 and "started again" in summary.notes[-1]
+    assert "restarted after a crash 1 time(s)" in summary.line()
+    assert summary.distance_m > 300 and summary.ego_collisions == 0
+    assert eg is not None and math.hypot(eg["x"] - st.x, eg["y"] - st.y) < 3.0   # SUMO has the ego again
+    assert summary.max_vehicles > 0
