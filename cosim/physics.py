@@ -22,16 +22,9 @@ import numpy as np
 import pybullet as pb
 
 from models import prefab_dir
+from netgen.meshio import LAYER_COLOURS
 
-COLOURS = {
-    "asphalt": (0.23, 0.23, 0.25, 1.0),
-    "sidewalk": (0.62, 0.61, 0.58, 1.0),
-    "marking": (0.95, 0.95, 0.92, 1.0),
-    "building": (0.80, 0.74, 0.64, 1.0),
-    "terrain": (0.42, 0.55, 0.33, 1.0),
-    "areas": (0.36, 0.62, 0.30, 1.0),
-    "rail": (0.45, 0.40, 0.36, 1.0),
-}
+COLOURS = LAYER_COLOURS
 COLLIDE = {"asphalt", "sidewalk", "building", "rail"}
 COMPOUND_MAX = 16   # children per createCollisionShapeArray / createVisualShapeArray (PyBullet's limit)
 PREFAB_COLOURS = {"tree": (0.20, 0.45, 0.18, 1), "street_lamp": (0.35, 0.36, 0.38, 1),

@@ -20,13 +20,11 @@ drive a whole chunk while the next window is built.
 from __future__ import annotations
 
 import logging
-import os
-import socket
 import subprocess
-import sys
 import time
-from multiprocessing.connection import Connection
 from pathlib import Path
+
+from .workers import start_worker, worker_connection
 
 log = logging.getLogger("cosim.streaming")
 
@@ -109,17 +107,7 @@ class WorldStreamer:
     def _start(self, window):
         cfg = self.sim.cfg
         out = str(self.sim.world.path / "windows" / f"{window[0]}_{window[1]}")
-        # a plain interpreter running this module (multiprocessing's spawn would re-run the
-        # caller's __main__ in the child: a user's script without a main guard would start a
-        # second simulation there)
-        parent, child = socket.socketpair()
-        env = dict(os.environ)
-        root = str(Path(__file__).resolve().parents[1])
-        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-        self.proc = subprocess.Popen([sys.executable, "-m", "cosim.streaming", str(child.fileno())],
-                                     pass_fds=(child.fileno(),), env=env)
-        child.close()
-        self.conn = Connection(parent.detach())
+        self.proc, self.conn = start_worker("cosim.streaming")
         self.conn.send((self.base_cfg, window, out, cfg.traffic, cfg.seed, max(cfg.duration_s, 60.0) + 60.0))
         self.job_window = window
         self.job_started = time.perf_counter()
@@ -156,5 +144,5 @@ class WorldStreamer:
 
 
 if __name__ == "__main__":
-    _conn = Connection(int(sys.argv[1]))
+    _conn = worker_connection()
     _build_window(*_conn.recv(), _conn)

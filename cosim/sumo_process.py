@@ -30,17 +30,15 @@ import logging
 import math
 import os
 import pickle
-import socket
 import subprocess
-import sys
 import types
 import weakref
-from multiprocessing.connection import Connection
 from pathlib import Path
 
 from netgen.errors import SimulationError
 
 from .component import Component
+from .workers import start_worker, worker_connection
 
 log = logging.getLogger(__name__)
 
@@ -284,23 +282,12 @@ class TrafficProcess(Component):
     def setup(self) -> None:
         if self._proc is not None:
             raise SimulationError("TrafficProcess.setup(): this simulation is already running")
-        # a plain interpreter running this module (not multiprocessing's spawn, which re-runs
-        # the caller's __main__ in the child: user scripts without a main guard would break)
-        parent, child = socket.socketpair()
         level = logging.getLogger("cosim").getEffectiveLevel()
-        env = dict(os.environ)
-        root = str(Path(__file__).resolve().parents[1])
-        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         try:
-            self._proc = subprocess.Popen([sys.executable, "-m", "cosim.sumo_process", str(child.fileno())],
-                                          pass_fds=(child.fileno(),), env=env, cwd=os.getcwd())
+            self._proc, self._conn = start_worker("cosim.sumo_process")
         except OSError as e:
-            parent.close()
-            child.close()
             raise SimulationError(f"cannot start SUMO's worker process: {e}") from None
-        child.close()
         _WORKERS.add(self)
-        self._conn = Connection(parent.detach())
         try:
             self._conn.send((self._args, self._kwargs, level))
             self._call(("setup",), (), {})
@@ -399,22 +386,12 @@ class TrafficProcess(Component):
                 static = False
         elif _is_read(path) and not kwargs:
             key = (path, args)
-            if self._lagged:
-                try:
-                    hit = self._prefetched.get(key)
-                except TypeError:
-                    hit = None
-                if hit is not None:             # the state the step in flight started from
-                    self._prefetch_keys[key] = self._steps
-                    if hit[0] == "err":
-                        raise hit[1]
-                    return hit[1]
-            self.sync()
-            try:
-                self._prefetch_keys[key] = self._steps
-                hit = self._prefetched.get(key)
-            except TypeError:      # unhashable arguments
-                hit = None
+            if not self._lagged:        # lagged: first the state the step in flight started from
+                self.sync()
+            hit = self._prefetch_hit(key)
+            if hit is None and self._lagged:
+                self.sync()
+                hit = self._prefetch_hit(key)
             if hit is not None:
                 if hit[0] == "err":
                     raise hit[1]
@@ -426,6 +403,15 @@ class TrafficProcess(Component):
         if static:
             self._cache[key] = value
         return value
+
+    def _prefetch_hit(self, key):
+        """The answer to this read shipped with the last step received, or None; the read
+        is asked for again with the next steps."""
+        try:
+            self._prefetch_keys[key] = self._steps
+            return self._prefetched.get(key)
+        except TypeError:      # unhashable arguments
+            return None
 
     def _resolve(self, path):
         kind = self._kinds.get(path)
@@ -517,6 +503,6 @@ if __name__ == "__main__":
     if os.environ.get("COSIM_WORKER_PROFILE"):      # a cProfile dump of the worker, for benchmarks
         import cProfile
 
-        cProfile.run("_serve(Connection(int(sys.argv[1])))", os.environ["COSIM_WORKER_PROFILE"])
+        cProfile.run("_serve(worker_connection())", os.environ["COSIM_WORKER_PROFILE"])
     else:
-        _serve(Connection(int(sys.argv[1])))
+        _serve(worker_connection())

@@ -59,6 +59,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 from .errors import BuildError, CosimError, DataError, InputError
+from .meshio import LAYER_COLOURS
 
 EXPORT_FORMAT = "cosim-sdf-export"
 EXPORT_FORMAT_VERSION = 1
@@ -67,18 +68,7 @@ MESH_FORMATS = ("auto", "stl", "dae")
 CAR_MODEL = "cosim_car"
 CAR_DROP_M = 0.05          # the car is spawned this far above the road surface
 
-# the colours of cosim/physics.py (PyBullet view), so both simulators look alike
-COLOURS = {
-    "asphalt": (0.23, 0.23, 0.25, 1.0),
-    "sidewalk": (0.62, 0.61, 0.58, 1.0),
-    "marking": (0.95, 0.95, 0.92, 1.0),
-    "building": (0.80, 0.74, 0.64, 1.0),
-    "terrain": (0.42, 0.55, 0.33, 1.0),
-    "grass": (0.36, 0.62, 0.30, 1.0),
-    "water": (0.25, 0.45, 0.70, 1.0),
-    "areas": (0.36, 0.62, 0.30, 1.0),
-    "rail": (0.45, 0.40, 0.36, 1.0),
-}
+COLOURS = LAYER_COLOURS
 ROAD_LAYERS = ("asphalt", "sidewalk", "rail", "marking")   # tile layers exported as road models
 COLLIDE = {"asphalt", "sidewalk", "rail", "building", "terrain"}
 

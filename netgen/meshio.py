@@ -33,6 +33,20 @@ import numpy as np
 from ._atomic import _disk_error
 
 
+# layer colours (RGBA), shared by the PyBullet view and the Gazebo export so both look alike
+LAYER_COLOURS = {
+    "asphalt": (0.23, 0.23, 0.25, 1.0),
+    "sidewalk": (0.62, 0.61, 0.58, 1.0),
+    "marking": (0.95, 0.95, 0.92, 1.0),
+    "building": (0.80, 0.74, 0.64, 1.0),
+    "terrain": (0.42, 0.55, 0.33, 1.0),
+    "grass": (0.36, 0.62, 0.30, 1.0),
+    "water": (0.25, 0.45, 0.70, 1.0),
+    "areas": (0.36, 0.62, 0.30, 1.0),
+    "rail": (0.45, 0.40, 0.36, 1.0),
+}
+
+
 # ---------------------------------------------------------------------------------------
 # vectorised text
 # ---------------------------------------------------------------------------------------

@@ -45,6 +45,22 @@ def _check_readable(path: Path) -> None:
         raise DataError(f"OSM file {path.name} is empty")
 
 
+class _WayCounter(osmium.SimpleHandler):
+    """Counts ways, highway ways and relations (no node callback: see the module docstring)."""
+
+    def __init__(self):
+        super().__init__()
+        self.ways = self.highways = self.relations = 0
+
+    def way(self, w):
+        self.ways += 1
+        if "highway" in w.tags:
+            self.highways += 1
+
+    def relation(self, r):
+        self.relations += 1
+
+
 def scan(path: Path) -> dict:
     """Read the whole file once with pyosmium; return counts and the data bbox.
 
@@ -52,11 +68,10 @@ def scan(path: Path) -> dict:
     path = Path(path)
     _check_readable(path)
 
-    class Counter(osmium.SimpleHandler):
+    class Counter(_WayCounter):
         def __init__(self):
             super().__init__()
-            self.nodes = self.ways = self.relations = 0
-            self.highways = 0
+            self.nodes = 0
             self.minlon = self.minlat = 1e9
             self.maxlon = self.maxlat = -1e9
 
@@ -69,14 +84,6 @@ def scan(path: Path) -> dict:
                 if lon > self.maxlon: self.maxlon = lon
                 if lat < self.minlat: self.minlat = lat
                 if lat > self.maxlat: self.maxlat = lat
-
-        def way(self, w):
-            self.ways += 1
-            if "highway" in w.tags:
-                self.highways += 1
-
-        def relation(self, r):
-            self.relations += 1
 
     c = Counter()
     try:
@@ -101,22 +108,6 @@ def header_bbox(path: Path):
     if not box.valid():
         return None
     return (box.bottom_left.lat, box.bottom_left.lon, box.top_right.lat, box.top_right.lon)
-
-
-class _WayCounter(osmium.SimpleHandler):
-    """Counts ways, highway ways and relations (no node callback: see the module docstring)."""
-
-    def __init__(self):
-        super().__init__()
-        self.ways = self.highways = self.relations = 0
-
-    def way(self, w):
-        self.ways += 1
-        if "highway" in w.tags:
-            self.highways += 1
-
-    def relation(self, r):
-        self.relations += 1
 
 
 def to_osm_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
