@@ -20,7 +20,7 @@ Relative paths in a scenario (osm, dem, out, telemetry) are relative to the scen
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 try:

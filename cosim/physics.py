@@ -52,6 +52,7 @@ class PhysicsWorld:
         self.load_budget_ms = load_budget_ms
         self.client = None
         self.tiles: dict = {}
+        self._stale: set = set()          # loaded tiles a newer window replaced (refresh)
         self._shape_pool: dict = {}       # (file, collide) -> (collision id, visual id)
         self._prefabs: dict = {}
         self._chunk_visuals: dict = {}    # chunk -> (body, refcount)
@@ -105,10 +106,12 @@ class PhysicsWorld:
         t0 = time.perf_counter()
         loaded = 0
         for k in want:
-            if k in self.tiles:
+            if k in self.tiles and k not in self._stale:
                 continue
             if loaded and (time.perf_counter() - t0) * 1000.0 > budget:
                 break
+            if k in self._stale:          # replaced in one go: the sensors never see a hole
+                self.unload_tile(k)
             self.load_tile(k)
             loaded += 1
         keep = set(self.world.tiles_within(x, y, unload_radius))
@@ -116,25 +119,27 @@ class PhysicsWorld:
         for k in [k for k in self.tiles if k not in keep]:
             self.unload_tile(k)
             unloaded += 1
-        return {"loaded": loaded, "unloaded": unloaded, "pending": sum(1 for k in want if k not in self.tiles)}
+        return {"loaded": loaded, "unloaded": unloaded,
+                "pending": sum(1 for k in want if k not in self.tiles or k in self._stale)}
 
     def covered(self, x: float, y: float, r: float) -> bool:
         """True when every tile touching the disc (x, y, r) is built and loaded."""
         return all(k in self.tiles for k in self.world.tiles_within(x, y, r))
 
-    def refresh(self, chunks, near: tuple | None = None) -> int:
-        """Replace the loaded tiles of chunks that a new window replaced: those within
-        ``near`` = (x, y, radius) at once (the sensors must never see a hole), the others on
-        later updates. Returns how many were unloaded."""
+    def refresh(self, chunks) -> int:
+        """The world took in a new window: the loaded tiles of the chunks it replaced are
+        stale. ``update`` replaces them (the new tile loaded in the same call that unloads the
+        old one) nearest first, within its time budget, like any other load. Returns how many
+        tiles became stale."""
         chunks = set(chunks)
-        keys = [k for k in self.tiles if (k[0], k[1]) in chunks]
-        for k in keys:
-            self.unload_tile(k)
-        if near is not None:
-            for k in self.world.tiles_within(*near):
-                if k not in self.tiles and self.world.is_built(k):
-                    self.load_tile(k)
-        return len(keys)
+        stale = {k for k in self.tiles if (k[0], k[1]) in chunks}
+        self._stale |= stale
+        for ij in chunks & set(self._chunk_visuals):      # visual only: redrawn from the new build
+            body, n = self._chunk_visuals.pop(ij)
+            if body is not None:
+                pb.removeBody(body, physicsClientId=self.client)
+            self._chunk_visual_ref(ij, n)
+        return len(stale)
 
     def load_tile(self, key):
         t0 = time.perf_counter()
@@ -168,6 +173,7 @@ class PhysicsWorld:
         return tb
 
     def unload_tile(self, key):
+        self._stale.discard(key)
         tb = self.tiles.pop(key, None)
         if tb is None:
             return
@@ -200,7 +206,8 @@ class PhysicsWorld:
         """A visual mesh of the tile's grid on Bullet's triangulation (a refilled heightfield
         keeps the visual of its creation data, so terrain is drawn with its own mesh).
         Cached per tile, as PyBullet cannot free visual shapes."""
-        vis = self._shape_pool.get(("terrain-visual", key))
+        pool_key = ("terrain-visual", key, str(self.world.chunks[(key[0], key[1])]["_base"]))
+        vis = self._shape_pool.get(pool_key)
         if vis is not None:
             return vis
         ny, nx = g.z.shape
@@ -213,7 +220,7 @@ class PhysicsWorld:
         tri = np.concatenate([np.stack([a, b_, c_], -1).reshape(-1, 3), np.stack([b_, d, c_], -1).reshape(-1, 3)])
         vis = pb.createVisualShape(pb.GEOM_MESH, vertices=V.tolist(), indices=tri.ravel().tolist(),
                                    rgbaColor=COLOURS["terrain"], physicsClientId=self.client)
-        self._shape_pool[("terrain-visual", key)] = vis
+        self._shape_pool[pool_key] = vis
         return vis
 
     def _heightfield(self, g):

@@ -24,7 +24,6 @@ import math
 import random
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -140,7 +139,6 @@ class Simulation:
         from .telemetry import Telemetry
         from .traffic import SumoTraffic
         from .vehicle import RECOMMENDED_PHYSICS_HZ, EgoVehicle, configure_physics
-        from .world import World
 
         cfg = self.cfg
         try:
@@ -260,8 +258,6 @@ class Simulation:
         return px, py, yaw, lane, pos
 
     def _plan_route(self, lane: str, pos: float):
-        from .driving import LanePath
-
         s = self.traffic.sumo
         edge = lane.rsplit("_", 1)[0]
         if self.cfg.goal:
@@ -273,14 +269,14 @@ class Simulation:
             gedge = glane.rsplit("_", 1)[0]
             r = s.simulation.findRoute(edge, gedge, vType="DEFAULT_VEHTYPE")
             if not r.edges:
-                raise InputError(f"goal unreachable: no route by road from the start to the goal")
+                raise InputError("goal unreachable: no route by road from the start to the goal")
             self.route = list(r.edges)
             self.summary.arrived = False
             self.snap_info.update({"goal_snap_m": round(gdist, 2), "route_length_m": round(r.length, 1),
                                    "eta_s": round(r.travelTime, 1)})
         else:
             self.route = self._random_route(edge)
-        self.path = LanePath(s, self.route, start_lane=lane, start_pos=pos)
+        self.path = self.traffic.lane_path(self.route, start_lane=lane, start_pos=pos)
         self._path_idx = 0
 
     def _random_route(self, edge: str, min_len: float = 800.0) -> list[str]:
@@ -388,7 +384,7 @@ class Simulation:
                 and abs(st.speed) < 1.0:
             self.summary.arrived = True
         # streaming
-        r = self.physics.update(st.x, st.y, self.keep_radius)
+        self.physics.update(st.x, st.y, self.keep_radius)
         self.streamer.step(st.x, st.y)
         if not self._covered(st.x, st.y):
             self.summary.sensor_range_violations += 1
@@ -417,7 +413,6 @@ class Simulation:
         return self.physics.covered(x, y, self.cfg.sensor_range_m)
 
     def _extend_route(self):
-        from .driving import LanePath
 
         last = self.route[-1]
         more = self._random_route(last)

@@ -7,11 +7,15 @@ worker process (netconvert, layers and traffic demand: Python threads would not 
 spawned process shares no libsumo or PyBullet state), into ``<world>/windows/<i>_<j>``.
 When it is ready:
 
-* the world view takes in its chunks (``World.add_window``), and tiles of replaced chunks
-  reload from the new build, so roads cut at the old window's edge become whole;
-* SUMO restarts on the new network with the new demand (``SumoTraffic.swap_network``); the
-  actors near the ego keep their positions and speeds and their mirrored bodies (re-keyed to
-  the new SUMO ids), so none visibly vanishes;
+* with SUMO in its worker process, SUMO is first started on the new network and demand in a
+  second worker (``TrafficProcess.prepare_network``), while the car drives on; the swap
+  waits for nothing once it has loaded (in-process SUMO restarts during the swap's frame);
+* the world view takes in its chunks (``World.add_window``); the loaded tiles of replaced
+  chunks are replaced from the new build over the next frames, within the loading budget
+  (``PhysicsWorld.refresh``), so roads cut at the old window's edge become whole;
+* SUMO switches to the new network (``swap_network``): the actors near the ego keep their
+  positions and speeds and their mirrored bodies (re-keyed to the new SUMO ids), so none
+  visibly vanishes, and the new demand's own actors there make room for them;
 * the ego's route is planned again on the new network.
 
 With one ring a window reaches at least one chunk beyond the car's chunk, so the car can
@@ -64,6 +68,8 @@ class WorldStreamer:
         self.job_started = 0.0
         self.swaps = 0
         self.swap_ms: list = []
+        self.swap_phases_ms: list = []    # per swap: {phase: ms}
+        self.ready = None                 # (window, out, routes) built, SUMO loading for it
         self.build_s: list = []
         self.errors: list = []
         self.enabled = self.base_cfg is not None
@@ -79,6 +85,14 @@ class WorldStreamer:
 
     def step(self, x: float, y: float) -> None:
         if not self.enabled:
+            return
+        if self.ready is not None:
+            traffic = self.sim.traffic
+            # (a SUMO restarted after a crash has lost what was prepared: swap the slow way)
+            if getattr(traffic, "preparing", None) is None or traffic.prepared_ready():
+                window, out, routes = self.ready
+                self.ready = None
+                self._swap(window, out, routes)
             return
         ij = self.sim.world.frame.chunk_of(x, y)
         if self.proc is None and ij != self.center and ij not in self.built:
@@ -102,7 +116,21 @@ class WorldStreamer:
                 self.built.add(window)          # do not retry in a loop; reported in the summary
                 log.warning("could not build the window around chunk %s: %s", window, out)
                 return
-            self._swap(window, out, routes)
+            net = self._net_of(out)
+            if hasattr(self.sim.traffic, "prepare_network"):
+                try:
+                    self.sim.traffic.prepare_network(net, routes)
+                except Exception as e:          # the swap restarts SUMO itself then
+                    log.info("could not start SUMO ahead on the next network: %s", e)
+                self.ready = (window, out, routes)
+            else:
+                self._swap(window, out, routes)
+
+    @staticmethod
+    def _net_of(out) -> Path:
+        from .world import World
+
+        return World(out).net_file
 
     def _start(self, window):
         cfg = self.sim.cfg
@@ -116,19 +144,30 @@ class WorldStreamer:
     def _swap(self, window, out, routes):
         sim = self.sim
         t0 = time.perf_counter()
+        phases = {}
+
+        def lap(name):
+            nonlocal t0
+            t = time.perf_counter()
+            phases[name] = round((t - t0) * 1000.0, 1)
+            t0 = t
+
         changed = sim.world.add_window(out)
-        st = sim.vehicle.state()
-        sim.physics.refresh(changed, near=(st.x, st.y, sim.keep_radius))
+        sim.physics.refresh(changed)
+        lap("world")
         mapping = sim.traffic.swap_network(sim.world.net_file, routes, keep_radius=sim.cfg.mirror_radius_m)
         sim._routes = list(routes)          # what SUMO restarts on, should its worker crash
+        lap("sumo")
         sim.mirror.rekey(mapping)
         sim.replan()
+        lap("replan")
         self.center = window
         self.built.add(window)
         self.swaps += 1
-        self.swap_ms.append(round((time.perf_counter() - t0) * 1000.0, 1))
-        log.info("swapped to the window around chunk %s (%d chunks new, %d actors kept, %.0f ms)",
-                 window, len(changed), len(mapping), self.swap_ms[-1])
+        self.swap_phases_ms.append(phases)
+        self.swap_ms.append(round(sum(phases.values()), 1))
+        log.info("swapped to the window around chunk %s (%d chunks new, %d actors kept, %.0f ms: %s)",
+                 window, len(changed), len(mapping), self.swap_ms[-1], phases)
 
     def teardown(self):
         if self.proc is not None:

@@ -83,7 +83,12 @@ _WORKERS: "weakref.WeakSet[TrafficProcess]" = weakref.WeakSet()
 
 def live_workers() -> list[int]:
     """Process ids of the SUMO worker processes this process runs now."""
-    return [t._proc.pid for t in list(_WORKERS) if t._proc is not None and t._proc.poll() is None]
+    procs = []
+    for t in list(_WORKERS):
+        procs.append(t._proc)
+        procs.append((t._next or {}).get("proc"))
+        procs.extend(p for p, _ in t._retired)
+    return [p.pid for p in procs if p is not None and p.poll() is None]
 
 
 def available_cpus() -> int:
@@ -229,6 +234,32 @@ def _serve(conn):
 
 
 # --- the main-process side ------------------------------------------------------------------
+def _ask_exit(proc, conn) -> None:
+    """Ask a worker to close SUMO and end (without waiting)."""
+    try:
+        if proc.poll() is None:
+            conn.send(("exit", (), (), {}))
+    except Exception:
+        pass
+
+
+def _reap(proc, conn, wait: bool) -> bool:
+    """Collect a worker that was asked to end; True once it has."""
+    if wait:
+        try:
+            proc.wait(10.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5.0)
+    elif proc.poll() is None:
+        return False
+    try:
+        conn.close()
+    except Exception:
+        pass
+    return True
+
+
 class _Remote:
     """A proxy for an object (module, class) inside the worker: attribute access and calls."""
     __slots__ = ("_tp", "_path")
@@ -277,6 +308,8 @@ class TrafficProcess(Component):
         self._last_pose = None
         self.calls = 0           # requests sent (for benchmarks)
         self.waits = 0           # answers waited for
+        self._next: dict | None = None   # SUMO started ahead on the next network (prepare_network)
+        self._retired: list = []         # workers of earlier networks, closing down
 
     # --- lifecycle ----------------------------------------------------------------------
     def setup(self) -> None:
@@ -296,25 +329,16 @@ class TrafficProcess(Component):
             raise
 
     def teardown(self) -> None:
+        self.discard_prepared()
         proc, conn = self._proc, self._conn
         self._proc = self._conn = None
         self._pending = 0
-        if proc is None:
-            return
-        try:
-            if proc.poll() is None:
-                conn.send(("exit", (), (), {}))
-        except Exception:
-            pass
-        try:
-            proc.wait(10.0)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5.0)
-        try:
-            conn.close()
-        except Exception:
-            pass
+        if proc is not None:
+            _ask_exit(proc, conn)
+            self._retired.append((proc, conn))
+        for proc, conn in self._retired:
+            _reap(proc, conn, wait=True)
+        self._retired = []
         self._state["running"] = False
 
     def __del__(self):
@@ -431,6 +455,8 @@ class TrafficProcess(Component):
         leader, its lane, the persons on a crossing, ...) and the actors around the pose last
         sent, so the next frame usually waits once, for the step itself."""
         self._steps += 1
+        if self._retired:
+            self._retired = [(p, c) for p, c in self._retired if not _reap(p, c, wait=False)]
         keys = [k for k, last in self._prefetch_keys.items() if self._steps - last <= PREFETCH_KEEP]
         self._prefetch_keys = {k: self._prefetch_keys[k] for k in keys}
         self._actors_req = None
@@ -438,6 +464,105 @@ class TrafficProcess(Component):
             self._actors_req = (self._last_pose[0], self._last_pose[1], self._actors_radius + ACTORS_MARGIN_M)
             keys.append((("actors_near",), self._actors_req))
         self._post(("step", tuple(keys), (), {}))
+
+    # --- the next network, started ahead --------------------------------------------------
+    def prepare_network(self, new_net, new_routes=()) -> None:
+        """Start SUMO on another network in a second worker process, in the background, so that
+        ``swap_network`` to it does not wait for SUMO to load (a second or more on a city's
+        network and demand). ``prepared_ready()`` tells when it has loaded."""
+        self.discard_prepared()
+        if isinstance(new_routes, (str, os.PathLike)):
+            new_routes = [new_routes]
+        args = (str(Path(new_net)), [str(Path(p)) for p in new_routes])
+        level = logging.getLogger("cosim").getEffectiveLevel()
+        try:
+            proc, conn = start_worker("cosim.sumo_process")
+        except OSError as e:
+            raise SimulationError(f"cannot start SUMO's worker process: {e}") from None
+        nxt = dict(proc=proc, conn=conn, args=args, pending=0, error=None)
+        self._next = nxt
+        try:
+            conn.send((args, self._kwargs, level))
+            # load; one step (the demand's trips in progress are inserted: swap_adopt's first
+            # step, taken ahead); build SUMO's lane lookup (see SumoTraffic.warm_up)
+            for msg in (("call", ("setup",), (), {}), ("call", ("step",), (), {}), ("call", ("warm_up",), (), {})):
+                conn.send(msg)
+                nxt["pending"] += 1
+        except (EOFError, OSError, BrokenPipeError):
+            nxt["error"] = SimulationError("SUMO's worker process for the next network ended at once")
+            nxt["pending"] = 0
+
+    @property
+    def preparing(self):
+        """The (net, routes) SUMO is being started on ahead of a swap, or None."""
+        return None if self._next is None else self._next["args"]
+
+    def prepared_ready(self, block: bool = False) -> bool:
+        """True once the SUMO started by ``prepare_network`` has loaded (or failed: the swap
+        then raises its error). Does not wait unless ``block``."""
+        nxt = self._next
+        if nxt is None:
+            return False
+        while nxt["pending"] and (block or nxt["conn"].poll()):
+            try:
+                status, value, _state, records = nxt["conn"].recv()
+            except (EOFError, OSError):
+                code = nxt["proc"].poll()
+                nxt["error"] = SimulationError(
+                    f"SUMO's worker process for the next network ended unexpectedly (exit code {code})")
+                nxt["pending"] = 0
+                break
+            nxt["pending"] -= 1
+            for name, level, msg in records:
+                logging.getLogger(name).log(level, "%s", msg)
+            if status == "err" and nxt["error"] is None:
+                nxt["error"] = value
+                nxt["pending"] = 0
+        return not nxt["pending"]
+
+    def discard_prepared(self) -> None:
+        nxt, self._next = self._next, None
+        if nxt is not None:
+            _ask_exit(nxt["proc"], nxt["conn"])
+            self._retired.append((nxt["proc"], nxt["conn"]))
+
+    def swap_network(self, new_net, new_routes=(), keep_radius: float = 100.0, center=None) -> dict:
+        """As ``SumoTraffic.swap_network``. With the same network and routes prepared
+        (``prepare_network``), the actors are captured here, the worker switched to the
+        prepared one and the actors inserted there: no wait for SUMO to load. Otherwise the
+        worker restarts SUMO itself."""
+        if isinstance(new_routes, (str, os.PathLike)):
+            new_routes = [new_routes]
+        args = (str(Path(new_net)), [str(Path(p)) for p in new_routes])
+        nxt = self._next
+        if nxt is None or nxt["args"] != args:
+            self.discard_prepared()
+            mapping = self._call(("swap_network",), (new_net, list(new_routes)),
+                                 dict(keep_radius=keep_radius, center=center))
+            self._switched(args)
+            return mapping
+        self.prepared_ready(block=True)
+        self._next = None
+        if nxt["error"] is not None:
+            _ask_exit(nxt["proc"], nxt["conn"])
+            self._retired.append((nxt["proc"], nxt["conn"]))
+            raise nxt["error"]
+        carry = self._call(("swap_capture",), (keep_radius, center), {})
+        old = (self._proc, self._conn)
+        self._proc, self._conn = nxt["proc"], nxt["conn"]
+        _ask_exit(*old)
+        self._retired.append(old)
+        self._switched(args)
+        return self._call(("swap_adopt",), (carry,), {})
+
+    def _switched(self, args) -> None:
+        """The worker now runs SUMO on another network: nothing read before holds."""
+        self._args = args
+        self.net_file = Path(args[0])
+        self.route_files = [Path(p) for p in args[1]]
+        self._prefetched = {}
+        self._actors_req = None
+        self._kinds = {}
 
     @contextlib.contextmanager
     def lagged_reads(self):
@@ -485,7 +610,7 @@ class TrafficProcess(Component):
         return _Remote(self, ("sumo",))
 
     def __getattr__(self, name):
-        if name.startswith("__") or name in ("_proc", "_conn", "_state", "_kinds"):
+        if name.startswith("__") or name in ("_proc", "_conn", "_state", "_kinds", "_next", "_retired"):
             raise AttributeError(name)
         state = self.__dict__.get("_state", {})
         if name in _STATE:

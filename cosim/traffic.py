@@ -182,6 +182,9 @@ class TrafficStats:
     _seen_collisions: set = field(default_factory=set, repr=False)
 
 
+SWAP_ROOM_MARGIN_M = 20.0    # the new SUMO's own actors this far beyond the kept ones make room
+
+
 @dataclass
 class _Kept:
     """State of one actor carried across swap_network."""
@@ -198,6 +201,8 @@ class _Kept:
     lane_pos: float
     edges: list
     arrival_pos: float | None = None
+    lane_id: str = ""
+    lane_length: float = -1.0    # of lane_id: the same lane in the next network has the same length
 
 
 # --- the component --------------------------------------------------------------------------
@@ -741,6 +746,30 @@ class SumoTraffic(Component):
                               np.atleast_1d(sumo_angle_to_yaw(a[2]))[keep], a[3][keep], a[4][keep],
                               a[5][keep], a[6][keep], a[7][keep], lanes[keep])
 
+    def warm_up(self) -> None:
+        """Do now what the first swap_adopt / lane_path would pay for: SUMO builds its lane
+        lookup (for convertRoad, moveToXY) on first use, and the driving module loads (in a
+        fresh worker process)."""
+        from . import driving  # noqa: F401
+
+        s = self._require()
+        for e in self._edge_set():
+            if not e.startswith(":"):
+                x, y = s.lane.getShape(f"{e}_0")[0]
+                try:
+                    s.simulation.convertRoad(x, y, False, "passenger")
+                except self._exc:
+                    pass
+                break
+
+    def lane_path(self, edges: Sequence[str], start_lane: str | None = None, start_pos: float = 0.0):
+        """``cosim.driving.LanePath`` along ``edges`` on this SUMO's network. Built where SUMO
+        runs: in SUMO's worker process it reads hundreds of lane shapes and links, which would
+        otherwise each be a round trip (a re-plan after a network swap took 165 ms that way)."""
+        from .driving import LanePath
+
+        return LanePath(self._require(), list(edges), start_lane=start_lane, start_pos=start_pos)
+
     def actors_near_getters(self, x: float, y: float, radius: float) -> ActorsSnapshot:
         """Same result as :meth:`actors_near` with per-actor getter calls (reference/benchmark)."""
         s = self._require()
@@ -840,22 +869,12 @@ class SumoTraffic(Component):
         ``sim_time`` is the time before it and the kept actors stand where they stood. Kept
         actors get new SUMO ids (``<id>~<n>``) so they cannot clash with the new demand; the
         return value maps old id -> new id (for the mirror to re-key its bodies).
+
+        It is ``swap_capture`` on this SUMO, a restart on the new network, then ``swap_adopt``
+        (``cosim.sumo_process.TrafficProcess`` starts the new SUMO in a second process ahead
+        of time and does the same two halves, without the restart in between).
         """
-        s = self._require()
-        ego = self.ego_state() if self._ego_in_sim else None
-        if center is None:
-            if ego is None:
-                raise SimulationError("swap_network needs the ego in SUMO or an explicit center")
-            center = (ego["x"], ego["y"])
-        cx, cy = float(center[0]), float(center[1])
-        t_before = self.sim_time
-        try:
-            kept = self._capture(cx, cy, float(keep_radius))
-        except self._exc as e:
-            raise SimulationError(f"cannot read SUMO state for the swap: {e}") from None
-        ego_spec = dict(self._ego_spec) if self._ego_added else None
-        ego_speed = self._ego_pending_speed
-        stats = self.stats
+        carry = self.swap_capture(keep_radius, center)
         self.teardown()
         self.net_file = Path(new_net)
         if isinstance(new_routes, (str, os.PathLike)):
@@ -863,8 +882,41 @@ class SumoTraffic(Component):
         self.route_files = [Path(p) for p in new_routes]
         self._generation += 1
         self.setup()
-        self.stats = stats
-        s = self._sim
+        return self.swap_adopt(carry)
+
+    def swap_capture(self, keep_radius: float = 100.0, center: tuple[float, float] | None = None) -> dict:
+        """The first half of a swap: what goes across to the next SUMO (picklable): the actors
+        within ``keep_radius`` of the ego (or ``center``), the ego, the clock and the counters."""
+        self._require()
+        ego = self.ego_state() if self._ego_in_sim else None
+        if center is None:
+            if ego is None:
+                raise SimulationError("swap_network needs the ego in SUMO or an explicit center")
+            center = (ego["x"], ego["y"])
+        cx, cy = float(center[0]), float(center[1])
+        try:
+            kept = self._capture(cx, cy, float(keep_radius))
+        except self._exc as e:
+            raise SimulationError(f"cannot read SUMO state for the swap: {e}") from None
+        return dict(kept=kept, ego=ego, center=(cx, cy), keep_radius=float(keep_radius),
+                    ego_spec=dict(self._ego_spec) if self._ego_added else None,
+                    ego_speed=self._ego_pending_speed, t_before=self.sim_time, stats=self.stats,
+                    generation=self._generation)
+
+    def swap_adopt(self, carry: dict) -> dict[str, str]:
+        """The second half of a swap, on a SUMO just started on the new network: its own
+        demand's actors around the ego make room (after one step, which inserts the demand's
+        trips in progress), the carried actors and the ego are inserted where they were, and
+        the clock continues. Returns old id -> new id of the actors carried over."""
+        s = self._require()
+        self._generation = max(self._generation, int(carry["generation"]) + 1)
+        if s.simulation.getTime() <= 0.0:
+            self.step()                       # the demand's trips in progress are inserted now
+        cx, cy = carry["center"]
+        self._make_room(cx, cy, carry["keep_radius"] + SWAP_ROOM_MARGIN_M)
+        self.stats = carry["stats"]
+        kept, ego, ego_spec = carry["kept"], carry["ego"], carry["ego_spec"]
+        ego_speed = carry["ego_speed"]
         mapping: dict[str, str] = {}
         for k in kept:
             base = k.old_id.split("~")[0]
@@ -877,8 +929,8 @@ class SumoTraffic(Component):
         if ego_spec is not None:
             self._ego_spec = ego_spec
             if ego is not None:
-                self._ego_spec["edges"] = [ego["edge"]] if ego["edge"] in set(
-                    s.edge.getIDList()) else [self._any_edge_for(ego_spec["vclass"])]
+                self._ego_spec["edges"] = [ego["edge"]] if ego["edge"] in self._edge_set() \
+                    else [self._any_edge_for(ego_spec["vclass"])]
             self._readd_ego()
             if ego is not None:
                 self.set_ego_pose(ego["x"], ego["y"], ego["yaw"], ego_speed or ego["speed"])
@@ -888,7 +940,7 @@ class SumoTraffic(Component):
         # on by themselves (SUMO derives a moved person's speed from the distance it was moved,
         # which is meaningless for the insertion jump), so persons end up at most one step of
         # walking (~0.15 m) ahead.
-        self._time_offset = t_before - 2 * self.step_length
+        self._time_offset = carry["t_before"] - s.simulation.getTime() - 2 * self.step_length
         self.step()
         for k in kept:
             nid = mapping.get(k.old_id)
@@ -914,8 +966,25 @@ class SumoTraffic(Component):
         if self._ctx_anchor is not None:   # refresh: the results of step 2 predate the speeds
             self._subscribe_context(self._ctx_anchor, self._ctx_radius)
         log.info("swap_network: %s, kept %d of %d actors within %.0f m", self.net_file.name,
-                 len(mapping), len(kept), keep_radius)
+                 len(mapping), len(kept), carry["keep_radius"])
         return mapping
+
+    def _make_room(self, cx: float, cy: float, radius: float) -> int:
+        """Remove this SUMO's own vehicles and persons within ``radius`` of (cx, cy): the
+        actors carried over from the previous SUMO stand there."""
+        s = self._sim
+        n = 0
+        try:
+            snap = self.actors_near_getters(cx, cy, radius)
+        except self._exc:
+            return 0
+        for aid, kind in zip(snap.ids, snap.kind):
+            try:
+                (s.person if kind == "person" else s.vehicle).remove(aid)
+                n += 1
+            except self._exc:
+                pass
+        return n
 
     def _capture(self, cx: float, cy: float, radius: float) -> list[_Kept]:
         s = self._sim
@@ -938,7 +1007,7 @@ class SumoTraffic(Component):
                     length=p.getLength(aid), width=p.getWidth(aid), height=p.getHeight(aid),
                     vclass="pedestrian", max_speed=s.vehicletype.getMaxSpeed(tid)),
                     *p.getPosition(aid), p.getAngle(aid), p.getSpeed(aid), edge, 0,
-                    p.getLanePosition(aid), edges, arrival))
+                    p.getLanePosition(aid), edges, arrival, *self._lane_and_length(p.getLaneID(aid))))
             else:
                 v = s.vehicle
                 tid = v.getTypeID(aid)
@@ -950,8 +1019,25 @@ class SumoTraffic(Component):
                     accel=v.getAccel(aid), decel=v.getDecel(aid), min_gap=v.getMinGap(aid)),
                     *v.getPosition(aid), v.getAngle(aid), v.getSpeed(aid), v.getRoadID(aid),
                     v.getLaneIndex(aid), v.getLanePosition(aid), route[idx:],
-                    v.getArrivalPos(aid) if hasattr(v, "getArrivalPos") else None))
+                    v.getArrivalPos(aid) if hasattr(v, "getArrivalPos") else None,
+                    *self._lane_and_length(v.getLaneID(aid))))
         return kept
+
+    def _lane_and_length(self, lane_id: str) -> tuple[str, float]:
+        try:
+            return lane_id, float(self._sim.lane.getLength(lane_id)) if lane_id else -1.0
+        except self._exc:
+            return "", -1.0
+
+    def _same_lane(self, k: _Kept) -> bool:
+        """The actor's lane exists in this network with the same length (so the same geometry:
+        windows are cut from one OSM source), and the lane position carries over as it is."""
+        if not k.lane_id or k.lane_id.startswith(":") or k.edge not in self._edge_set():
+            return False
+        try:
+            return abs(self._sim.lane.getLength(k.lane_id) - k.lane_length) < 0.05
+        except self._exc:
+            return False
 
     def _person_walk_index(self, pid: str, road: str, edges: list) -> int:
         """Index in the walk's edges of the edge the person is on or walks onto next."""
@@ -977,11 +1063,15 @@ class SumoTraffic(Component):
         self._ensure_type(k.type_id, k.type_params, person=k.person)
         vclass = "pedestrian" if k.person else k.type_params.get("vclass", "passenger")
         edges = [e for e in k.edges if e in edges_known]
-        # the edge under the actor in the new network
-        try:
-            road, pos, lane = s.simulation.convertRoad(k.x, k.y, False, vclass)
-        except self._exc:
-            road, pos, lane = (k.edge, k.lane_pos, k.lane) if k.edge in edges_known else ("", 0.0, 0)
+        # the edge under the actor in the new network: its lane, if the new network has it
+        # unchanged, else SUMO's map matching (convertRoad: 10-20 ms a call on a city network)
+        if self._same_lane(k):
+            road, pos, lane = k.edge, k.lane_pos, k.lane
+        else:
+            try:
+                road, pos, lane = s.simulation.convertRoad(k.x, k.y, False, vclass)
+            except self._exc:
+                road, pos, lane = (k.edge, k.lane_pos, k.lane) if k.edge in edges_known else ("", 0.0, 0)
         if road.startswith(":"):
             road = edges[0] if edges else ""
         if not road:
@@ -1016,7 +1106,7 @@ class SumoTraffic(Component):
         return True
 
     def _edge_set(self) -> set:
-        if getattr(self, "_edges_cache_gen", None) != (self._generation, str(self.net_file)):
+        if getattr(self, "_edges_cache_gen", None) != str(self.net_file):
             self._edges_cache = set(self._sim.edge.getIDList())
-            self._edges_cache_gen = (self._generation, str(self.net_file))
+            self._edges_cache_gen = str(self.net_file)
         return self._edges_cache

@@ -15,6 +15,7 @@ import pytest
 
 from cosim.config import SimConfig
 from cosim.sim import Simulation
+from cosim.sumo_process import live_workers
 from cosim.traffic import EGO_ID, front_to_center, sumo_angle_to_yaw
 from netgen.build import build_world
 from netgen.config import WorldConfig
@@ -143,8 +144,19 @@ def test_next_window_built_in_background_and_swapped_in(motorway_world):
         deadline = time.time() + 900
         while sim.streamer.proc.poll() is None and time.time() < deadline:
             time.sleep(0.5)                       # wall clock: the build runs beside the loop
+        pid = sim.traffic._proc.pid if sim._pipelined else None
         near = set(sim.mirror.active)
         sim.step()                                # takes the finished window in
+        if sim._pipelined:
+            # SUMO loads the new network in a second worker while the car drives on; the
+            # swap switches to it once loaded
+            assert sim.streamer.ready is not None and sim.traffic.preparing is not None
+            prepared = sim.traffic._next["proc"].pid
+            assert prepared in live_workers() and pid in live_workers()
+            while sim.streamer.swaps == 0 and time.time() < deadline:
+                near = set(sim.mirror.active)
+                sim.step()
+            assert sim.traffic._proc.pid == prepared
         assert sim.streamer.swaps == 1, sim.streamer.errors
         assert sim.streamer.center == window
         assert sim.world.net_file.parent.parent == motorway_world / "windows" / f"{window[0]}_{window[1]}"
@@ -156,6 +168,7 @@ def test_next_window_built_in_background_and_swapped_in(motorway_world):
     finally:
         sim.teardown()
     assert not near or kept >= 0.5 * len(near)   # mirrored actors carried over (re-keyed), not dropped
+    assert not live_workers()                     # the old network's worker ended too
     assert summary.distance_m - d0 > 200          # and the car drives on, on the new network
     assert summary.sensor_range_violations == 0
     assert summary.ego_collisions == 0, sim.collision_log

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from cosim.demand import generate_demand
-from cosim.sumo_process import TrafficProcess
+from cosim.sumo_process import TrafficProcess, live_workers
 from cosim.traffic import SumoTraffic, front_to_center, sumo_angle_to_yaw
 from netgen.errors import SimulationError
 
@@ -144,3 +144,76 @@ def test_worker_errors_are_one_line(net, tmp_path):
         assert "\n" not in msg and "worker process ended unexpectedly" in msg and "-9" in msg
     finally:
         t.teardown()
+
+
+def _swap_run(t, lane, other_routes, prepare):
+    """300 steps of traffic, 30 of the ego driving along `lane`, a swap (to the same network
+    with another demand), 30 more steps; the actors near the ego after each of those steps."""
+    s = t.sumo
+    for _ in range(300):
+        t.step()
+    shape = np.array(s.lane.getShape(lane))
+    d = np.r_[0.0, np.cumsum(np.hypot(*np.diff(shape, axis=0).T))]
+    t.add_ego([lane.rsplit("_", 1)[0]])
+    out, mapping = [], None
+    for k in range(60):
+        if k == 5 and prepare:
+            t.prepare_network(t.net_file, other_routes)
+        if k == 30:
+            if prepare:
+                assert t.prepared_ready(block=True)
+            mapping = t.swap_network(t.net_file, other_routes, keep_radius=60.0)
+        pos = 10.0 + k * 1.0
+        fx, fy = np.interp(pos, d, shape[:, 0]), np.interp(pos, d, shape[:, 1])
+        i = min(int(np.searchsorted(d, pos)), len(d) - 1)
+        ang = math.degrees(math.atan2(shape[i, 0] - shape[i - 1, 0], shape[i, 1] - shape[i - 1, 1]))
+        cx, cy = front_to_center(fx, fy, ang, 4.5)
+        t.set_ego_pose(float(cx), float(cy), sumo_angle_to_yaw(ang), 10.0)
+        t.step()
+        snap = t.actors_near(float(cx), float(cy), 120.0)
+        if k == 30:
+            _swap_run.ego_xy = (float(cx), float(cy))
+        out.append((round(t.sim_time, 6), sorted(zip(snap.ids, np.round(snap.x, 6), np.round(snap.y, 6),
+                                                     snap.lane))))
+    return out, mapping
+
+
+def test_swap_to_a_network_started_ahead(net, routes, tmp_path):
+    """TrafficProcess starts SUMO on the next network in a second worker ahead of the swap
+    (prepare_network); the swap then gives exactly what the in-process restart gives, and the
+    old worker ends."""
+    other = generate_demand(net, tmp_path, "dense", seed=9, duration=200).route_files
+    local = SumoTraffic(net, routes, seed=4)
+    local.setup()
+    try:
+        lane = _start_lane(local.sumo)
+        want, want_map = _swap_run(local, lane, other, prepare=False)
+    finally:
+        local.teardown()
+    remote = TrafficProcess(net, routes, seed=4)
+    remote.setup()
+    try:
+        first = remote._proc.pid
+        got, got_map = _swap_run(remote, lane, other, prepare=True)
+        assert remote._proc.pid != first and remote.preparing is None
+        assert remote.route_files == [p for p in map(type(remote.route_files[0]), other)]
+        assert remote._generation == 1
+        for _ in range(50):                 # the old worker is collected as the run goes on
+            remote.step()
+            if first not in live_workers():
+                break
+        assert first not in live_workers()
+    finally:
+        remote.teardown()
+    assert not live_workers()
+    assert want_map and got_map == want_map        # the same actors carried over
+    assert [t for t, _ in got] == [t for t, _ in want] and want[29][0] == pytest.approx(33.0)
+    assert got == want                             # then the same traffic, step by step
+    ego_xy = _swap_run.ego_xy
+    # the new demand's actors in progress around the ego made room for the carried ones: in
+    # the first step after the swap, within 75 m of the ego there are only carried actors
+    # (and any that departed in that very step)
+    kept = set(want_map.values())
+    near_new = [a for a in want[30][1] if a[0] not in kept and a[0] != "ego"]
+    ex, ey = ego_xy
+    assert len([a for a in near_new if math.hypot(a[1] - ex, a[2] - ey) < 75.0]) <= 1
