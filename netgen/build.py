@@ -314,6 +314,12 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         if nc.running():            # else the scenery process plans it, beside the roads
             with T.stage("scenery_plan"):
                 splan = scenery_plan()
+        buildings = _Buildings(chunks, bounds, bplan, grid)
+        with T.stage("buildings_prepare"):      # the files but the heights, chunk by chunk
+            for k in range(len(chunks)):        # while netconvert runs (else where written)
+                if not nc.running():
+                    break
+                buildings.prepare(k)
         # -- the network, read while netconvert writes it --------------------------------
         progress("roads", 0.0, "meshing roads")
         gc_frozen = _gc_freeze()        # (again before the forks)
@@ -327,7 +333,6 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
             (tmp / "chunks" / f"{i}_{j}").mkdir(parents=True)
 
         # -- after the network: three streams on the two cores (see _Streams) -----------
-        buildings = _Buildings(chunks, bounds, bplan, grid)
         streams = _Streams(_parallel(), grid)
         with T.stage("roads"):      # the lanes by edge, used by both streams: made once, before the fork
             road_lanes(net)
@@ -336,16 +341,10 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         with streams:
             streams.fork("cosim-layers", lambda: _layers(tmp, chunks, net, splan or scenery_plan, grid,
                                                          buildings, streams))
-            lev = {}
-
-            def level(pts, hw):     # as soon as the roads' support is known: the scenery
-                with T.stage("terrain_level"):      # stream may be waiting for the terrain
-                    lev.update(level_under_roads(grid, pts, hw))
-                streams.terrain_ready()
-
-            with T.stage("roads"):
-                roads = build_roads(net, natural.sample, q["road_step_m"], on_support=level)
-            T.t["roads"] = round(T.t["roads"] - T.t["terrain_level"], 3)
+            with T.stage("roads"):  # the levelling support goes to cosim-layers, which levels
+                roads = build_roads(net, natural.sample, q["road_step_m"],      # (or here, serially)
+                                    on_support=lambda pts, hw: streams.level(pts, hw, T))
+            T.t["roads"] = round(T.t["roads"] - T.t.get("terrain_level", 0.0), 3)
             nc.running()
             with T.stage("road_tiles_plan"):
                 road_tiles = _RoadTiles(chunks, bounds, roads, TILE_M)
@@ -353,9 +352,11 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
                                                  buildings.write_claimed(tmp, streams)))
             progress("write", 0.0, "writing chunks")
             with T.stage("write"):
-                entries = _write_terrain(tmp, chunks, bounds, grid)
-                nc.running()
                 tiles = road_tiles.write_claimed(tmp, streams)          # what nobody has taken
+                nc.running()
+                with T.stage("terrain_wait"):
+                    streams.wait_terrain()
+                entries = _write_terrain(tmp, chunks, bounds, grid)
                 nc.running()
                 bfiles = buildings.write_claimed(tmp, streams)
             # netconvert writes the rest of its file (connections) meanwhile: only now check
@@ -371,6 +372,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         if gc_frozen:
             gc.unfreeze()
     T.t.update(lout["timings"])
+    lev = streams.lev if streams.lev is not None else lout["levelling"]
     bfiles.update(b2)
     bfiles.update(lout["buildings"])
     for k, t in tiles + t2:
@@ -578,6 +580,7 @@ class _Streams:
         self.parallel = parallel
         self.grid = grid
         self.children = []
+        self.lev = None             # the levelling's figures, where it ran
         self._in_child = self._have_terrain = False
         if parallel:
             import multiprocessing as mp
@@ -586,6 +589,7 @@ class _Streams:
             self._z = self.ctx.RawArray("d", grid.z.size)
             self._ready = self.ctx.Event()
             self._claims = self.ctx.Array("i", 2)     # next road-tile unit, next building chunk
+            self._sup_r, self._sup_w = self.ctx.Pipe(duplex=False)     # the levelling support
         else:
             self._claims = [0, 0]
 
@@ -641,18 +645,74 @@ class _Streams:
         return out
 
     # -- sharing -----------------------------------------------------------------------------
-    def terrain_ready(self) -> None:
-        """The terrain is levelled: hand the heights to the children."""
+    def level(self, pts, hw, T: Timer) -> None:
+        """The roads' levelling support is known: hand it to cosim-layers, which levels the
+        terrain (:meth:`level_here`) while this process meshes the rest of the roads; without
+        children, level here."""
         if self.parallel:
-            np.frombuffer(self._z, dtype=np.float64)[:] = self.grid.z.ravel()
-            self._ready.set()
+            self._sup_w.send((pts, hw))
+            return
+        from .terrain import level_under_roads
+
+        with T.stage("terrain_level"):
+            self.lev = level_under_roads(self.grid, pts, hw)
+        self._have_terrain = True
+
+    def receive_support(self) -> None:
+        """In cosim-layers, first thing: a thread takes the support in as soon as it is sent
+        (the sender would otherwise block on the full pipe until :meth:`level_here`)."""
+        import threading
+
+        if self.parallel and self._in_child:
+            self._support = []
+            self._receiver = threading.Thread(target=lambda: self._support.append(self._sup_r.recv()),
+                                              daemon=True)
+            self._receiver.start()
+
+    def level_here(self, T: Timer) -> None:
+        """In cosim-layers: wait for the support, level the terrain and hand the heights to
+        the other processes (shared memory, allocated before the forks)."""
+        if not (self.parallel and self._in_child) or self._have_terrain:
+            return
+        from .terrain import level_under_roads
+
+        with T.stage("terrain_support_wait"):
+            self._receiver.join()
+            if not self._support:
+                raise BuildError("the roads' levelling support never came")
+            pts, hw = self._support.pop()
+        with T.stage("terrain_level"):
+            self.lev = level_under_roads(self.grid, pts, hw)
+        np.frombuffer(self._z, dtype=np.float64)[:] = self.grid.z.ravel()
+        self._ready.set()
+        self._have_terrain = True
 
     def wait_terrain(self) -> None:
-        """In a child: block until the levelled heights are in (then self.grid has them)."""
-        if self._in_child and not self._have_terrain:
+        """Block until the levelled heights are in (then self.grid has them). In this
+        process, an error of cosim-layers (which levels) is raised instead."""
+        if not self.parallel or self._have_terrain:
+            return
+        if self._in_child:
             self._ready.wait()
-            self.grid.z = np.frombuffer(self._z, dtype=np.float64).reshape(self.grid.z.shape)
-            self._have_terrain = True
+        else:
+            while not self._ready.wait(0.02):
+                proc, res_r = self.children[0]
+                if not proc.is_alive() and not self._ready.is_set():
+                    self._raise_from(proc, res_r)
+        self.grid.z = np.frombuffer(self._z, dtype=np.float64).reshape(self.grid.z.shape)
+        self._have_terrain = True
+
+    @staticmethod
+    def _raise_from(proc, res_r):
+        """A child that ended: raise its error (or that it died)."""
+        try:
+            status, value = res_r.recv()
+        except EOFError:
+            proc.join()
+            raise BuildError(f"build process {proc.name} died (exit code {proc.exitcode})") from None
+        if status == "error":
+            raise value
+        raise BuildError(f"build process {proc.name} ended before its work was done")
 
     def next_index(self, what: str) -> int:
         """The next unit of `what` ("roads" or "buildings") to write: 0, 1, 2, ... across
@@ -676,6 +736,7 @@ def _layers(tmp: Path, chunks, net, splan, grid, buildings, streams: _Streams) -
     from .scenery import PolygonSet, finish_scenery, place_scenery, write_chunk_scenery
 
     T = Timer()
+    streams.receive_support()
     if callable(splan):
         with T.stage("scenery_plan"):
             splan = splan()
@@ -683,8 +744,7 @@ def _layers(tmp: Path, chunks, net, splan, grid, buildings, streams: _Streams) -
         road = PolygonSet(carriageway_parts(net))
     with T.stage("scenery_place"):
         placed = place_scenery(splan, road)
-    with T.stage("scenery_terrain_wait"):
-        streams.wait_terrain()
+    streams.level_here(T)           # (in the child: the support comes from the roads)
     with T.stage("scenery_finish"):
         sres = finish_scenery(placed, grid.sample)
     chunks_out, kinds = [], {}
@@ -698,7 +758,8 @@ def _layers(tmp: Path, chunks, net, splan, grid, buildings, streams: _Streams) -
                 kinds[inst["kind"]] = kinds.get(inst["kind"], 0) + 1
     with T.stage("buildings_in_layers"):
         bfiles = buildings.write_claimed(tmp, streams) if streams.parallel else {}
-    return {"chunks": chunks_out, "kinds": kinds, "buildings": bfiles, "timings": dict(T.t)}
+    return {"chunks": chunks_out, "kinds": kinds, "buildings": bfiles, "timings": dict(T.t),
+            "levelling": streams.lev}
 
 
 # ---------------------------------------------------------------------------------------
@@ -718,11 +779,17 @@ def _write_terrain(tmp: Path, chunks, bounds, grid) -> list:
 class _Buildings:
     """The planned buildings, lifted onto the final terrain and written chunk by chunk by
     whichever process is free (:meth:`write_claimed`): per chunk one OBJ per tile (a group
-    per building, in the tile of its centroid), buildings.glb and buildings.json."""
+    per building, in the tile of its centroid), buildings.glb and buildings.json.
+
+    What does not depend on the terrain (the tiles' face text, the GLB's indices and scene,
+    buildings.json but the bases) is made by :meth:`prepare`, while netconvert runs when it
+    does; once the terrain is final only the positions and bases are left to write."""
 
     def __init__(self, chunks, bounds, bplan, grid):
         self.chunks, self.bounds, self.bplan, self.grid = chunks, bounds, bplan, grid
-        self.placed = None
+        self.layouts = None
+        self.prepared = {}
+        self.base = self.V = None
 
     def counts(self) -> tuple:
         """(buildings, heights from tags, heights from levels) over all chunks."""
@@ -730,30 +797,59 @@ class _Buildings:
         return (len(recs), sum(1 for r in recs if r["height_source"] == "height"),
                 sum(1 for r in recs if r["height_source"] == "building:levels"))
 
-    def write_chunk(self, tmp: Path, k: int) -> dict:
-        from .buildings import place_buildings, write_chunk_buildings
+    def prepare(self, k: int) -> None:
+        """Chunk k's files but the heights (once)."""
+        from .buildings import chunk_layouts, glb_template, json_template
+        from .meshio import obj_face_texts
 
-        if self.placed is None:         # all buildings at once (cheap), in each process
-            self.placed = place_buildings(self.bplan, self.grid.sample)
-        (i, j), r = self.chunks[k], self.placed[k]
-        cdir = f"chunks/{i}_{j}"
-        tiles: dict = {}
-        if r.records:
-            batch = ObjBatch()
-            t, nt = tile_index(np.array([rec["centroid"] for rec in r.records]), self.bounds[k], TILE_M)
+        if k in self.prepared:
+            return
+        if self.layouts is None:
+            self.layouts = chunk_layouts(self.bplan)
+        lay = self.layouts[k]
+        recs = [self.bplan.records[i] for i in lay.mine]
+        tiles, glb = [], None
+        if recs:
+            t, nt = tile_index(np.array([rec["centroid"] for rec in recs]), self.bounds[k], TILE_M)
+            vnum = np.arange(len(lay.vidx))         # gathered vertex numbers, not positions
+            items = []
             for tt in np.unique(t):
                 ks = np.flatnonzero(t == tt)
-                V, F, groups = _gather(r.vertices, r.faces, r.vstart, r.fstart, ks,
-                                       [r.records[n]["id"] for n in ks])
-                a, b = int(tt) // nt, int(tt) % nt
-                rel = f"{cdir}/tiles/{a}_{b}/building.obj"
-                batch.add(tmp / rel, V, F, groups)
-                tiles[f"{a}_{b}"] = {"building": rel}
+                vi, F, groups = _gather(vnum, lay.faces, lay.vstart, lay.fstart, ks, [recs[n]["id"] for n in ks])
+                tiles.append((f"{int(tt) // nt}_{int(tt) % nt}", vi))
+                items.append((F, groups))
+            tiles = [(name, vi, text) for (name, vi), text in zip(tiles, obj_face_texts(items))]
+            glb = glb_template([r["id"] for r in recs], lay.faces, lay.vstart, lay.fstart, lay.material,
+                               len(lay.vidx))
+        self.prepared[k] = (tiles, glb, json_template(lay.bounds, recs, lay.stats))
+
+    def write_chunk(self, tmp: Path, k: int) -> dict:
+        from .buildings import base_heights, lifted_vertices
+
+        if self.V is None:              # all buildings at once (cheap), in each process
+            self.base = base_heights(self.bplan, self.grid.sample)
+            self.V = lifted_vertices(self.bplan, self.base)
+        self.prepare(k)
+        tiles_p, glb, jt = self.prepared[k]
+        lay = self.layouts[k]
+        i, j = self.chunks[k]
+        cdir = f"chunks/{i}_{j}"
+        tiles, files = {}, {}
+        if len(lay.mine):
+            V = self.V[lay.vidx]
+            batch = ObjBatch()
+            for name, vi, text in tiles_p:
+                rel = f"{cdir}/tiles/{name}/building.obj"
+                batch.add_prepared(tmp / rel, V[vi], text)
+                tiles[name] = {"building": rel}
             batch.write()
-        # buildings.obj would repeat the building tiles: the world has the tiles and the GLB
-        bf = write_chunk_buildings(r, tmp / cdir, obj=False)
-        return {"files": {f"buildings_{n}": f"{cdir}/{v}" for n, v in bf.items() if v},
-                "tiles": tiles, "buildings": len(r.records)}
+            # buildings.obj would repeat the building tiles: the world has the tiles and the GLB
+            write_file(tmp / cdir / "buildings.glb", glb.render(V))
+            files["buildings_glb"] = f"{cdir}/buildings.glb"
+        base = self.base[lay.mine].tolist()
+        write_file(tmp / cdir / "buildings.json", jt.render([repr(b) for b in base]).encode())
+        files["buildings_json"] = f"{cdir}/buildings.json"
+        return {"files": files, "tiles": tiles, "buildings": len(lay.mine)}
 
     def write_claimed(self, tmp: Path, streams: _Streams) -> dict:
         """Write building chunks as long as there are chunks nobody has taken: {chunk: ...}.
@@ -763,7 +859,7 @@ class _Buildings:
             k = streams.next_index("buildings")
             if k >= len(self.chunks):
                 return out
-            if self.placed is None:
+            if self.V is None:
                 streams.wait_terrain()
             out[k] = self.write_chunk(tmp, k)
 

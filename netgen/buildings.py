@@ -64,7 +64,7 @@ from mapbox_earcut import triangulate_float64
 from shapely.geometry import Polygon, box
 
 from .errors import BuildError
-from .meshio import glb_bytes, write_file, write_obj
+from .meshio import GlbTemplate, JsonTemplate, write_file, write_obj
 from .osm_features import OSMFeatures, polygonal
 
 LEVEL_HEIGHT_M = 3.0
@@ -542,42 +542,82 @@ def plan_buildings(features: OSMFeatures, chunk_bounds_list) -> BuildingPlan:
                         failed=(fstart[1:] == fstart[:-1]), sample_x=sx, sample_y=sy, sample_owner=owner)
 
 
-def place_buildings(plan: BuildingPlan, ground, sink_m: float = 0.1) -> list[ChunkBuildings]:
-    """Put the planned solids on the ground: base = lowest ground under the footprint less
-    sink_m, every vertex lifted by its building's base; one :class:`ChunkBuildings` per chunk."""
-    n = len(plan.ids)
-    base = _base_heights(n, plan.sample_x, plan.sample_y, plan.sample_owner, ground, sink_m)
-    nv = np.diff(plan.vstart)
-    V = plan.vertices.copy()
-    V[:, 2] += np.repeat(base, nv)
-    results = []
+@dataclass
+class ChunkLayout:
+    """One chunk's buildings without their heights (what :func:`place_buildings` and the
+    world build's prepared writers share): plan indices (``mine``), the chunk's vertices as
+    plan vertex numbers (``vidx``), its faces over them, ranges, colour groups, stats."""
+    bounds: tuple
+    mine: np.ndarray
+    vidx: np.ndarray
+    faces: np.ndarray
+    vstart: np.ndarray
+    fstart: np.ndarray
+    material: list
+    stats: dict
+
+
+def chunk_layouts(plan: BuildingPlan) -> list[ChunkLayout]:
+    """Per chunk, in ``plan.chunk_bounds`` order: which planned solids it holds and how."""
+    out = []
     for k, bounds in enumerate(plan.chunk_bounds):
-        r = ChunkBuildings(bounds=bounds, stats={"buildings": 0})
+        stats = {"buildings": 0}
         mine = np.flatnonzero(plan.chunk == k)
         failed = mine[plan.failed[mine]]
         if len(failed):             # nothing left of a degenerate ring: count it
-            r.stats["extrude_failed"] = len(failed)
+            stats["extrude_failed"] = len(failed)
         mine = mine[~plan.failed[mine]]
+        vidx = np.zeros(0, np.int64)
+        faces = np.zeros((0, 3), np.int64)
+        vstart = fstart = np.zeros(1, np.int64)
         if len(mine):
             vs, ve = plan.vstart[mine], plan.vstart[mine + 1]
             fs, fe = plan.fstart[mine], plan.fstart[mine + 1]
             vcnt, fcnt = ve - vs, fe - fs
             vidx = np.repeat(vs - np.cumsum(vcnt) + vcnt, vcnt) + np.arange(vcnt.sum())
             fidx = np.repeat(fs - np.cumsum(fcnt) + fcnt, fcnt) + np.arange(fcnt.sum())
-            r.vertices = V[vidx]
             # faces: global vertex numbers -> numbers in this chunk's vertex array
             shift = np.repeat(np.cumsum(vcnt) - vcnt - vs, fcnt)
-            r.faces = plan.faces[fidx] + shift[:, None]
-            r.vstart = np.r_[0, np.cumsum(vcnt)]
-            r.fstart = np.r_[0, np.cumsum(fcnt)]
-            r.material = [plan.material[i] for i in mine]
-            for i in mine:
+            faces = plan.faces[fidx] + shift[:, None]
+            vstart = np.r_[0, np.cumsum(vcnt)]
+            fstart = np.r_[0, np.cumsum(fcnt)]
+        stats["buildings"] = len(mine)
+        # global drop counts are reported with every chunk (they happen before assignment)
+        stats.update(plan.stats)
+        stats["outside_chunks"] = plan.outside
+        out.append(ChunkLayout(bounds, mine, vidx, faces, vstart, fstart,
+                               [plan.material[i] for i in mine], stats))
+    return out
+
+
+def base_heights(plan: BuildingPlan, ground, sink_m: float = 0.1) -> np.ndarray:
+    """Each planned building's base: the lowest ground under its footprint less sink_m."""
+    return _base_heights(len(plan.ids), plan.sample_x, plan.sample_y, plan.sample_owner, ground, sink_m)
+
+
+def lifted_vertices(plan: BuildingPlan, base: np.ndarray) -> np.ndarray:
+    """Every planned vertex lifted by its building's base."""
+    V = plan.vertices.copy()
+    V[:, 2] += np.repeat(base, np.diff(plan.vstart))
+    return V
+
+
+def place_buildings(plan: BuildingPlan, ground, sink_m: float = 0.1) -> list[ChunkBuildings]:
+    """Put the planned solids on the ground: base = lowest ground under the footprint less
+    sink_m, every vertex lifted by its building's base; one :class:`ChunkBuildings` per chunk."""
+    base = base_heights(plan, ground, sink_m)
+    V = lifted_vertices(plan, base)
+    results = []
+    for lay in chunk_layouts(plan):
+        r = ChunkBuildings(bounds=lay.bounds, stats=lay.stats)
+        if len(lay.mine):
+            r.vertices = V[lay.vidx]
+            r.faces = lay.faces
+            r.vstart, r.fstart = lay.vstart, lay.fstart
+            r.material = lay.material
+            for i in lay.mine:
                 r.footprints[plan.ids[i]] = plan.footprints[i]
                 r.records.append({**plan.records[i], "base_z": float(base[i])})
-        r.stats["buildings"] = len(r.records)
-        # global drop counts are reported with every chunk (they happen before assignment)
-        r.stats.update(plan.stats)
-        r.stats["outside_chunks"] = plan.outside
         results.append(r)
     return results
 
@@ -602,18 +642,16 @@ def write_chunk_buildings(result: ChunkBuildings, out_dir, obj: bool = True) -> 
     a chunk without buildings writes only the JSON (an empty list) and maps glb/obj to None.
     Files are written under a temporary name and renamed; a write error is a
     :class:`BuildError`. (A world build leaves out buildings.obj: its tiles already hold
-    every building as a named OBJ group.)
+    every building as a named OBJ group; it writes the same GLB and JSON from templates
+    made before the terrain is final, :func:`glb_template` and :func:`json_template`.)
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files = {"glb": None, "obj": None, "json": "buildings.json"}
     if result.records:
-        groups = list(COLOURS)
-        write_file(out / "buildings.glb", glb_bytes(
-            [r["id"] for r in result.records], result.vertices, result.faces, result.vstart,
-            result.fstart, [groups.index(m) for m in result.material],
-            [{"name": f"building_{k}", "rgba": c, "roughness": 0.9, "metallic": 0.0}
-             for k, c in COLOURS.items()]))
+        write_file(out / "buildings.glb", glb_template(
+            [r["id"] for r in result.records], result.faces, result.vstart, result.fstart,
+            result.material, len(result.vertices)).render(result.vertices))
         files["glb"] = "buildings.glb"
         if obj:
             write_obj(out / "buildings.obj", result.vertices, result.faces)
@@ -622,6 +660,22 @@ def write_chunk_buildings(result: ChunkBuildings, out_dir, obj: bool = True) -> 
         {"bounds": list(result.bounds), "buildings": result.records,
          "stats": _jsonable(result.stats)}).encode())
     return files
+
+
+def glb_template(ids, faces, vstart, fstart, material, n_vertices: int):
+    """buildings.glb but its positions (:class:`netgen.meshio.GlbTemplate`)."""
+    groups = list(COLOURS)
+    return GlbTemplate(ids, faces, vstart, fstart, [groups.index(m) for m in material],
+                       [{"name": f"building_{k}", "rgba": c, "roughness": 0.9, "metallic": 0.0}
+                        for k, c in COLOURS.items()], n_vertices)
+
+
+def json_template(bounds, records, stats) -> JsonTemplate:
+    """buildings.json of `records` (without their ``base_z``) but the bases: render it
+    with the JSON text of each record's base (the same text as :func:`write_chunk_buildings`)."""
+    return JsonTemplate(lambda holes: {"bounds": list(bounds),
+                                       "buildings": [{**r, "base_z": h} for r, h in zip(records, holes)],
+                                       "stats": _jsonable(stats)}, len(records))
 
 
 def _jsonable(d: dict) -> dict:

@@ -60,10 +60,13 @@ def _ascii_lines(prefix: bytes, values: np.ndarray, decimals: int) -> tuple[byte
 
     Returns the text and the (n + 1,) byte offsets of the line starts (and the end). The
     lines are laid out as a fixed-width byte matrix, built column by column (transposed, so
-    every write is contiguous): sign, integer digits in groups of three, decimals; a mask
-    then drops the unused sign and leading zeros."""
+    every write is contiguous): sign, integer digits in groups of three, decimals; the unused
+    sign and leading zeros are NUL bytes, deleted from the whole text at once (no digit,
+    sign or separator is NUL; ``bytes.translate`` is several times faster than a numpy mask)."""
     if decimals not in (0, 3):
         raise ValueError("decimals must be 0 or 3")
+    if 0 in prefix:
+        raise ValueError("prefix must not contain NUL bytes")
     values = np.asarray(values)
     n, k = values.shape
     if n == 0:
@@ -98,7 +101,6 @@ def _ascii_lines(prefix: bytes, values: np.ndarray, decimals: int) -> tuple[byte
         if signed[j]:
             lengths -= ~neg[j]
     C = np.empty((width, n), dtype=np.uint8)         # transposed: C[c] is text column c
-    K = np.ones((width, n), dtype=bool)
     for c, byte in enumerate(prefix):
         C[c] = byte
     pos = len(prefix)
@@ -107,28 +109,29 @@ def _ascii_lines(prefix: bytes, values: np.ndarray, decimals: int) -> tuple[byte
             C[pos] = 32                              # " "
             pos += 1
         if signed[j]:
-            C[pos] = 45                              # "-", kept for negative numbers only
-            K[pos] = neg[j]
+            np.multiply(neg[j], 45, out=C[pos], casting="unsafe")   # "-" for negative numbers, else NUL
             pos += 1
         q = ip[j]
         for g in range(ng - 1, -1, -1):
-            r = q % 1000
-            for d in range(3):
-                C[pos + 3 * g + d] = _TRIPLES[d][r]
-            q = q // 1000
+            if g:
+                q, r = np.divmod(q, 1000)
+            else:
+                r = q                                # < 1000: ng groups hold every number
+            for d in range(3):                       # (take into the row: no temporary)
+                _TRIPLES[d].take(r, out=C[pos + 3 * g + d], mode="clip")
         for d in range(3 * ng - 1):                  # leading zeros (the last digit always stays)
-            K[pos + d] = nd[j] >= 3 * ng - d
+            row = C[pos + d]
+            np.multiply(row, nd[j] >= 3 * ng - d, out=row, casting="unsafe")
         pos += 3 * ng
         if decimals:
             C[pos] = 46                              # "."
             for d in range(3):
-                C[pos + 1 + d] = _TRIPLES[d][fp[j]]
+                _TRIPLES[d].take(fp[j], out=C[pos + 1 + d], mode="clip")
             pos += 4
     C[pos] = 10                                      # newline
-    C, K = C.T, K.T
     offsets = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(lengths, out=offsets[1:])
-    return C[K].tobytes(), offsets
+    return C.T.tobytes().translate(None, b"\0"), offsets
 
 
 def obj_bytes(vertices: np.ndarray, faces: np.ndarray, groups=None, mtl: str | None = None,
@@ -157,38 +160,61 @@ def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, groups=None, 
     write_file(path, obj_bytes(vertices, faces, groups, mtl, material))
 
 
+def obj_face_texts(items) -> list[bytes]:
+    """The part of each OBJ after its vertices (faces, with a ``g`` line per group) for a
+    list of (faces, groups) over 0-based vertex numbers, in one numpy pass: the same bytes
+    as :func:`obj_bytes` writes there. A world build makes the buildings' face text before
+    their heights are known (faces do not depend on them)."""
+    if not items:
+        return []
+    ftext, foff = _ascii_lines(b"f ", np.vstack([np.asarray(f, dtype=np.int64).reshape(-1, 3) + 1
+                                                  for f, _ in items]), 0)
+    out, f0 = [], 0
+    for f, groups in items:
+        nf = len(f)
+        if not groups:
+            out.append(ftext[foff[f0]:foff[f0 + nf]])
+        else:
+            out.append(b"".join(part for name, a, b in groups if b > a
+                                for part in (f"g {name}\n".encode(), ftext[foff[f0 + a]:foff[f0 + b]])))
+        f0 += nf
+    return out
+
+
 class ObjBatch:
     """Many OBJ files (a world's tiles) made together: the numbers of all of them are turned
     into text in two numpy passes (vertices, faces), then each file is cut out of that text,
     so hundreds of small files cost no more than one big one. The text is the same as
-    :func:`obj_bytes` gives file by file."""
+    :func:`obj_bytes` gives file by file. A file's face text may come ready-made
+    (:meth:`add_prepared`, from :func:`obj_face_texts`)."""
+
+    HEADER = b"# cosim world mesh: world metres, z up\n"
 
     def __init__(self):
         self.files = []
+        self._dirs = set()
 
     def add(self, path: Path, vertices: np.ndarray, faces: np.ndarray, groups=None) -> None:
         self.files.append((Path(path), np.asarray(vertices, dtype=float).reshape(-1, 3),
                            np.asarray(faces, dtype=np.int64).reshape(-1, 3), groups))
 
+    def add_prepared(self, path: Path, vertices: np.ndarray, face_text: bytes) -> None:
+        """A file whose face text (everything after the vertices) is already made."""
+        self.files.append((Path(path), np.asarray(vertices, dtype=float).reshape(-1, 3), bytes(face_text), None))
+
     def write(self) -> None:
         if not self.files:
             return
         vtext, voff = _ascii_lines(b"v ", np.vstack([v for _, v, _, _ in self.files]), 3)
-        ftext, foff = _ascii_lines(b"f ", np.vstack([f + 1 for _, _, f, _ in self.files]), 0)
-        v0 = f0 = 0
+        made = iter(obj_face_texts([(f, g) for _, _, f, g in self.files if not isinstance(f, bytes)]))
+        v0 = 0
         for path, v, f, groups in self.files:
-            parts = [b"# cosim world mesh: world metres, z up\n", vtext[voff[v0]:voff[v0 + len(v)]]]
-            if not groups:
-                parts.append(ftext[foff[f0]:foff[f0 + len(f)]])
-            else:
-                for name, a, b in groups:
-                    if b > a:
-                        parts.append(f"g {name}\n".encode())
-                        parts.append(ftext[foff[f0 + a]:foff[f0 + b]])
-            path.parent.mkdir(parents=True, exist_ok=True)
-            write_file(path, b"".join(parts))
+            ftext = f if isinstance(f, bytes) else next(made)
+            if path.parent not in self._dirs:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                self._dirs.add(path.parent)
+            write_file(path, b"".join((self.HEADER, vtext[voff[v0]:voff[v0 + len(v)]], ftext)))
             v0 += len(v)
-            f0 += len(f)
         self.files = []
 
 
@@ -233,63 +259,122 @@ def glb_bytes(names, vertices: np.ndarray, faces: np.ndarray, vstart, fstart, ma
     Piece k owns ``vertices[vstart[k]:vstart[k+1]]`` and ``faces[fstart[k]:fstart[k+1]]``
     (face indices global, i.e. into `vertices`); ``material_of[k]`` indexes `materials`,
     dicts ``{"name", "rgba" (0-255), "roughness", "metallic"}``. Pieces without faces are
-    left out. Positions are float32 and indices uint32, as in any glTF viewer's input."""
-    vstart = np.asarray(vstart, dtype=np.int64)
-    fstart = np.asarray(fstart, dtype=np.int64)
+    left out. Positions are float32 and indices uint32, as in any glTF viewer's input.
+    (:class:`GlbTemplate` then :meth:`GlbTemplate.render`.)"""
     V = np.asarray(vertices, dtype=np.float32).reshape(-1, 3)
-    F = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    n = len(names)
-    nf = fstart[1:] - fstart[:-1]
-    nv = vstart[1:] - vstart[:-1]
-    keep = np.flatnonzero((nf > 0) & (nv > 0))
-    # indices local to each piece, uint32; all indices first, then all positions
-    local = (F - np.repeat(vstart[:-1], nf)[:, None]).astype(np.uint32)
-    ibytes = local.tobytes()
-    pbytes = V.tobytes()
-    ilen = len(ibytes)
-    pad = (-ilen) % 4
-    blob = ibytes + b"\0" * pad + pbytes
-    blob += b"\0" * ((-len(blob)) % 4)
-    if len(keep):     # per-piece bounds: reduce over [start, end) pairs, every other result
-        Vp = np.vstack([V, V[:1]])
-        idx = np.column_stack([vstart[keep], vstart[keep + 1]]).ravel()
-        vmin = np.minimum.reduceat(Vp, idx, axis=0)[::2]
-        vmax = np.maximum.reduceat(Vp, idx, axis=0)[::2]
-    used = sorted({int(material_of[k]) for k in keep})
-    mat_index = {m: i for i, m in enumerate(used)}
-    accessors, meshes, nodes = [], [], []
-    for r, k in enumerate(keep.tolist()):
-        accessors.append({"bufferView": 0, "byteOffset": int(fstart[k]) * 12, "componentType": 5125,
-                          "count": int(nf[k]) * 3, "type": "SCALAR"})
-        accessors.append({"bufferView": 1, "byteOffset": int(vstart[k]) * 12, "componentType": 5126,
-                          "count": int(nv[k]), "type": "VEC3",
-                          "min": vmin[r].tolist(), "max": vmax[r].tolist()})
-        meshes.append({"name": names[k], "primitives": [{
-            "attributes": {"POSITION": 2 * r + 1}, "indices": 2 * r, "mode": 4,
-            "material": mat_index[int(material_of[k])]}]})
-        nodes.append({"name": names[k], "mesh": r})
-    mats = []
-    for m in used:
-        d = materials[m]
-        mats.append({"name": d["name"], "doubleSided": False, "pbrMetallicRoughness": {
-            "baseColorFactor": [c / 255.0 for c in d["rgba"]],
-            "metallicFactor": d.get("metallic", 0.0), "roughnessFactor": d.get("roughness", 1.0)}})
-    gltf = {"asset": {"version": "2.0", "generator": "cosim netgen"}, "scene": 0,
-            "scenes": [{"nodes": list(range(len(nodes)))}], "nodes": nodes, "meshes": meshes,
-            "accessors": accessors, "materials": mats,
-            "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": ilen, "target": 34963},
-                            {"buffer": 0, "byteOffset": ilen + pad, "byteLength": len(pbytes),
-                             "target": 34962, "byteStride": 12}],
-            "buffers": [{"byteLength": len(blob)}]}
-    if not nodes:
-        gltf = {k: v for k, v in gltf.items() if k not in ("bufferViews", "buffers", "accessors")}
-        blob = b""
-    js = json.dumps(gltf, separators=(",", ":")).encode()
-    js += b" " * ((-len(js)) % 4)
-    chunks = struct.pack("<II", len(js), 0x4E4F534A) + js
-    if blob:
-        chunks += struct.pack("<II", len(blob), 0x004E4942) + blob
-    return struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks
+    return GlbTemplate(names, faces, vstart, fstart, material_of, materials, len(V)).render(V)
+
+
+def _json_float(x: float) -> str:
+    return repr(x) if np.isfinite(x) else json.dumps(x)
+
+
+class JsonTemplate:
+    """``json.dumps(doc)`` of a document with holes whose values come later: `make_doc`
+    gets n placeholder strings and returns the document with them where the values go;
+    :meth:`render` fills in the values' JSON text. Most of a large document (a chunk's
+    buildings, a GLB's nodes) can so be written before its heights are known."""
+
+    def __init__(self, make_doc, n: int, **dumps_kw):
+        import re
+        import secrets
+
+        tok = secrets.token_hex(8)
+        text = json.dumps(make_doc([f"@{tok}:{i}@" for i in range(n)]), **dumps_kw)
+        parts = re.split(f'"@{tok}:(\\d+)@"', text)
+        self.segments = parts[0::2]
+        self.order = [int(i) for i in parts[1::2]]
+        if sorted(self.order) != list(range(n)):
+            raise ValueError("JsonTemplate: every placeholder must appear exactly once")
+
+    def render(self, values: list) -> str:
+        """`values`: the JSON text of each hole, in placeholder order."""
+        out = [self.segments[0]]
+        for i, seg in zip(self.order, self.segments[1:]):
+            out.append(values[i])
+            out.append(seg)
+        return "".join(out)
+
+
+class GlbTemplate:
+    """Everything of :func:`glb_bytes` that does not depend on the vertex positions (the
+    indices, the scene, the JSON), made once; :meth:`render` adds positions and bounds."""
+
+    def __init__(self, names, faces, vstart, fstart, material_of, materials: list[dict], n_vertices: int):
+        vstart = np.asarray(vstart, dtype=np.int64)
+        fstart = np.asarray(fstart, dtype=np.int64)
+        F = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+        nf = fstart[1:] - fstart[:-1]
+        nv = vstart[1:] - vstart[:-1]
+        keep = np.flatnonzero((nf > 0) & (nv > 0))
+        self.n_vertices, self.vstart, self.keep = int(n_vertices), vstart, keep
+        # indices local to each piece, uint32; all indices first, then all positions
+        local = (F - np.repeat(vstart[:-1], nf)[:, None]).astype(np.uint32)
+        self.ibytes = local.tobytes()
+        ilen = len(self.ibytes)
+        self.pad = (-ilen) % 4
+        plen = self.n_vertices * 12
+        blob_len = ilen + self.pad + plen
+        blob_len += (-blob_len) % 4
+        used = sorted({int(material_of[k]) for k in keep})
+        mat_index = {m: i for i, m in enumerate(used)}
+        mats = []
+        for m in used:
+            d = materials[m]
+            mats.append({"name": d["name"], "doubleSided": False, "pbrMetallicRoughness": {
+                "baseColorFactor": [c / 255.0 for c in d["rgba"]],
+                "metallicFactor": d.get("metallic", 0.0), "roughnessFactor": d.get("roughness", 1.0)}})
+
+        def doc(holes):
+            accessors, meshes, nodes = [], [], []
+            for r, k in enumerate(keep.tolist()):
+                accessors.append({"bufferView": 0, "byteOffset": int(fstart[k]) * 12, "componentType": 5125,
+                                  "count": int(nf[k]) * 3, "type": "SCALAR"})
+                accessors.append({"bufferView": 1, "byteOffset": int(vstart[k]) * 12, "componentType": 5126,
+                                  "count": int(nv[k]), "type": "VEC3",
+                                  "min": holes[2 * r], "max": holes[2 * r + 1]})
+                meshes.append({"name": names[k], "primitives": [{
+                    "attributes": {"POSITION": 2 * r + 1}, "indices": 2 * r, "mode": 4,
+                    "material": mat_index[int(material_of[k])]}]})
+                nodes.append({"name": names[k], "mesh": r})
+            gltf = {"asset": {"version": "2.0", "generator": "cosim netgen"}, "scene": 0,
+                    "scenes": [{"nodes": list(range(len(nodes)))}], "nodes": nodes, "meshes": meshes,
+                    "accessors": accessors, "materials": mats,
+                    "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": ilen, "target": 34963},
+                                    {"buffer": 0, "byteOffset": ilen + self.pad, "byteLength": plen,
+                                     "target": 34962, "byteStride": 12}],
+                    "buffers": [{"byteLength": blob_len}]}
+            if not nodes:
+                gltf = {k: v for k, v in gltf.items() if k not in ("bufferViews", "buffers", "accessors")}
+            return gltf
+
+        self.json = JsonTemplate(doc, 2 * len(keep), separators=(",", ":"))
+
+    def render(self, vertices: np.ndarray) -> bytes:
+        V = np.asarray(vertices, dtype=np.float32).reshape(-1, 3)
+        if len(V) != self.n_vertices:
+            raise ValueError(f"GlbTemplate: {len(V)} vertices, made for {self.n_vertices}")
+        keep, vstart = self.keep, self.vstart
+        bounds = []
+        if len(keep):     # per-piece bounds: reduce over [start, end) pairs, every other result
+            Vp = np.vstack([V, V[:1]])
+            idx = np.column_stack([vstart[keep], vstart[keep + 1]]).ravel()
+            vmin = np.minimum.reduceat(Vp, idx, axis=0)[::2]
+            vmax = np.maximum.reduceat(Vp, idx, axis=0)[::2]
+            mm = np.empty((2 * len(keep), 3), dtype=np.float32)
+            mm[0::2], mm[1::2] = vmin, vmax
+            if np.all(np.isfinite(mm)):
+                bounds = [f"[{a!r},{b!r},{c!r}]" for a, b, c in mm.tolist()]
+            else:
+                bounds = ["[" + ",".join(_json_float(x) for x in row) + "]" for row in mm.tolist()]
+        js = self.json.render(bounds).encode()
+        js += b" " * ((-len(js)) % 4)
+        chunks = struct.pack("<II", len(js), 0x4E4F534A) + js
+        if len(keep):
+            blob = self.ibytes + b"\0" * self.pad + V.tobytes()
+            blob += b"\0" * ((-len(blob)) % 4)
+            chunks += struct.pack("<II", len(blob), 0x004E4942) + blob
+        return struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks
 
 
 # ---------------------------------------------------------------------------------------

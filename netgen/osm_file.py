@@ -110,6 +110,44 @@ def header_bbox(path: Path):
     return (box.bottom_left.lat, box.bottom_left.lon, box.top_right.lat, box.top_right.lon)
 
 
+def count_xml(path: Path, chunk: int = 1 << 22) -> dict:
+    """Ways, relations and highway ways of an OSM XML file written by libosmium, counted in
+    its text (a Python callback per way, as :class:`_WayCounter` does, costs twice as much
+    as the whole conversion): libosmium writes one element or tag per line, nodes, then
+    ways, then relations, and escapes ``<`` inside values, so ``<way `` starts a way,
+    ``<relation `` a relation, and a ``<tag k="highway"`` line between the first way and
+    the first relation is a way's highway tag (a key appears once per object)."""
+    way, rel, hw = b"<way ", b"<relation ", b'<tag k="highway"'
+    n_way = n_rel = n_hw = 0
+    in_ways = done = False          # reading ways / past the first relation
+    rest = b""
+    with open(path, "rb") as f:
+        while True:
+            data = f.read(chunk)
+            buf = rest + data
+            if data:                # whole lines only; the rest goes with the next chunk
+                cut = buf.rfind(b"\n") + 1
+                buf, rest = buf[:cut], buf[cut:]
+            if not buf:
+                if not data:
+                    break
+                continue
+            n_way += buf.count(way)
+            n_rel += buf.count(rel)
+            if not done:
+                lo = 0
+                if not in_ways:
+                    lo = buf.find(way)
+                    in_ways = lo >= 0
+                if in_ways:
+                    hi = buf.find(rel, lo)
+                    done = hi >= 0
+                    n_hw += buf.count(hw, lo, hi if done else len(buf))
+            if not data:
+                break
+    return {"ways": n_way, "relations": n_rel, "highway_ways": n_hw}
+
+
 def to_osm_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
     """Check `path` and return (OSM XML file netconvert can read, info with the sha256).
 
@@ -130,22 +168,21 @@ def to_osm_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
             return out, json.loads(marker.read_text())
         except ValueError:
             pass
-    counter = _WayCounter()
     with atomic_path(out) as tmp:
         w = osmium.SimpleWriter(osmium.io.File(str(tmp), "osm"), overwrite=True)
         try:
             r = osmium.MergeInputReader()
             r.add_file(str(path))
-            r.apply(w, counter)
+            r.apply(w)
         except Exception as e:    # libosmium: a parse error, a truncated block (RuntimeError subclasses)
             msg = " ".join(str(e).split())[:200]
             raise DataError(f"OSM file {path.name} is corrupt or truncated ({msg})") from None
         finally:
             w.close()
-        if counter.ways == 0:
+        counts = count_xml(tmp)
+        if counts["ways"] == 0:
             nodes = scan(path)["nodes"]      # only to word the error
             raise DataError(f"OSM file {path.name} has no map data ({nodes} nodes, 0 ways)")
-    info = {"ways": counter.ways, "relations": counter.relations, "highway_ways": counter.highways,
-            "sha256": digest}
+    info = {**counts, "sha256": digest}
     write_text(marker, json.dumps(info))
     return out, info

@@ -113,6 +113,29 @@ def sample_grid(frame, elevation, extent, spacing: float) -> TerrainGrid:
     return TerrainGrid(xmin=xmin, ymin=ymin, spacing=spacing, z=z)
 
 
+def _nodes_near(grid: TerrainGrid, pts: np.ndarray, reach: float) -> np.ndarray:
+    """Flat indices (ascending) of the grid nodes that may lie within `reach` of one of `pts`:
+    every node within reach is among them (a superset, by whole cells: the square of
+    +-(reach/spacing + 1) cells around each point's cell; points beyond the grid count at its
+    border)."""
+    ny, nx = grid.z.shape
+    sp = grid.spacing
+    if not len(pts) or not np.all(np.isfinite(pts[:, :2])) or not np.isfinite(reach):
+        return np.arange(ny * nx)
+    ci = np.clip(np.floor((pts[:, 0] - grid.xmin) / sp), 0, nx - 1).astype(np.int64)
+    ri = np.clip(np.floor((pts[:, 1] - grid.ymin) / sp), 0, ny - 1).astype(np.int64)
+    occ = np.zeros((ny, nx), dtype=np.int32)
+    occ[ri, ci] = 1
+    k = int(np.ceil(reach / sp)) + 1
+    for axis, n in ((1, nx), (0, ny)):      # dilate by k cells along x, then along y
+        cs = np.cumsum(occ, axis=axis, dtype=np.int32)
+        cs = np.concatenate([np.zeros_like(cs.take([0], axis=axis)), cs], axis=axis)
+        i = np.arange(n)
+        hi, lo = np.minimum(i + k + 1, n), np.maximum(i - k, 0)
+        occ = (cs.take(hi, axis=axis) - cs.take(lo, axis=axis) > 0).astype(np.int32)
+    return np.flatnonzero(occ)
+
+
 def level_under_roads(grid: TerrainGrid, pts: np.ndarray, halfwidth: np.ndarray,
                       blend_m: float | None = None) -> dict:
     """Level the grid to the road surface.
@@ -127,17 +150,20 @@ def level_under_roads(grid: TerrainGrid, pts: np.ndarray, halfwidth: np.ndarray,
         return {"levelled_nodes": 0, "blended_nodes": 0, "max_change_m": 0.0}
     sp = grid.spacing
     blend_m = sp if blend_m is None else blend_m
-    X, Y = grid.nodes()
-    q = np.column_stack([X.ravel(), Y.ravel()])
     tree = cKDTree(pts[:, :2])
     reach = float(halfwidth.max()) + INNER_CELLS * sp + blend_m
+    # only the nodes that may have a road point within reach are looked up (the others would
+    # find none): a node is a candidate if a road point lies in its square of +-reach
+    cand = _nodes_near(grid, pts, reach)
+    ny, nx = grid.z.shape
+    q = np.column_stack([grid.xmin + (cand % nx) * sp, grid.ymin + (cand // nx) * sp])
     d, idx = tree.query(q, k=1, distance_upper_bound=reach, workers=-1)     # threads: a core may be idle
     hit = np.isfinite(d)
     z = grid.z.ravel().copy()
     z0 = z.copy()
-    hi = np.nonzero(hit)[0]
-    di = d[hi]
-    ii = idx[hi]
+    hi = cand[hit]
+    di = d[hit]
+    ii = idx[hit]
     inner = halfwidth[ii] + INNER_CELLS * sp
     road_z = pts[ii, 2] - ROAD_SINK_M
     w = np.clip(1.0 - (di - inner) / blend_m, 0.0, 1.0)     # 1 on the road, 0 beyond the blend

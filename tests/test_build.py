@@ -457,3 +457,118 @@ def test_killed_build_leaves_nothing_trusted(tmp_path):
     assert r.returncode == 0, r.stderr
     assert load_world_json(tmp_path / "w") is not None
     assert not list(tmp_path.glob("w.tmp-*"))
+
+
+# ---------------------------------------------------------------------------------------
+# the build's shortcuts give what the plain code gives (outputs stay byte-identical)
+def _monaco_inputs():
+    from netgen.dem import open_dem
+    from netgen.frame import WorldFrame
+    from netgen.terrain import sample_grid
+
+    osm, dem = shared_file("osm/monaco-2022.osm.pbf"), shared_file("dem/N43E007.hgt")
+    frame = WorldFrame(43.7384, 7.4246, 1000.0)
+    chunks = frame.ring(1)
+    extent = frame.extent(chunks)
+    bbox = frame.bbox_lonlat(extent, margin_m=50.0)
+    grid = sample_grid(frame, open_dem([str(dem)]), extent, 5.0)
+    return osm, frame, chunks, bbox, grid
+
+
+def test_osm_conversion_counts_ways_as_osmium_does(helsinki):
+    """to_osm_xml counts ways, relations and highway ways in the XML it wrote (no Python
+    callback per way): the same counts as pyosmium's handler over that XML."""
+    from netgen.osm_file import _WayCounter, count_xml, to_osm_xml
+
+    osm = shared_file("osm/monaco-2022.osm.pbf")
+    for src in (REPO / "netgen/presets/helsinki-2019.osm.pbf", osm):
+        xml, info = to_osm_xml(src, helsinki[2] / "counts")
+        c = _WayCounter()
+        c.apply_file(str(xml))
+        assert (info["ways"], info["relations"], info["highway_ways"]) == (c.ways, c.relations, c.highways)
+        assert c.ways > 1000 and c.highways > 500 and c.relations > 100
+        for chunk in (4096, 100_003):           # chunk boundaries anywhere
+            assert count_xml(xml, chunk=chunk) == {k: info[k] for k in ("ways", "relations", "highway_ways")}
+
+
+def test_levelling_looks_up_only_nodes_near_roads_with_the_same_result(tmp_path):
+    """level_under_roads queries only the grid nodes near a road point: the heights and
+    figures are those of querying every node (Monaco's SRTM terrain and network)."""
+    from scipy.spatial import cKDTree
+
+    from netgen import terrain
+    from netgen.roads import build_roads
+    from netgen.terrain import TerrainGrid, level_under_roads
+
+    osm, frame, chunks, bbox, grid = _monaco_inputs()
+    w = build_world(WorldConfig(osm=str(osm), dem=[str(shared_file("dem/N43E007.hgt"))],
+                                center=(43.7384, 7.4246), chunks=1, out=str(tmp_path / "w"),
+                                cache_dir=str(tmp_path / "c")))
+    net = read_net(tmp_path / "w" / w["net_file"], internal=False)
+    sup = {}
+    build_roads(net, grid.sample, 5.0, on_support=lambda p, h: sup.update(p=p, h=h))
+    pts, hw = sup["p"], sup["h"]
+    g = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, grid.z.copy())
+    figures = level_under_roads(g, pts, hw)
+    # every node, as before the shortcut
+    sp = grid.spacing
+    X, Y = grid.nodes()
+    reach = float(hw.max()) + terrain.INNER_CELLS * sp + sp
+    d, idx = cKDTree(pts[:, :2]).query(np.column_stack([X.ravel(), Y.ravel()]), k=1, distance_upper_bound=reach)
+    hi = np.flatnonzero(np.isfinite(d))
+    z0 = grid.z.ravel()
+    z = z0.copy()
+    wgt = np.clip(1.0 - (d[hi] - (hw[idx[hi]] + terrain.INNER_CELLS * sp)) / sp, 0.0, 1.0)
+    z[hi] = wgt * (pts[idx[hi], 2] - terrain.ROAD_SINK_M) + (1.0 - wgt) * z0[hi]
+    assert np.array_equal(g.z.ravel(), z)
+    assert figures["levelled_nodes"] == int(np.sum(wgt >= 1.0)) > 1000
+    assert np.isin(hi, terrain._nodes_near(grid, pts, reach)).all()
+    assert len(terrain._nodes_near(grid, pts, reach)) < z.size          # a shortcut at all
+
+
+def test_prepared_building_files_are_the_plain_writers_files(tmp_path):
+    """The build makes buildings' files before the terrain is final and fills in heights
+    after (netgen.build._Buildings): the same bytes as write_chunk_buildings and a plain
+    OBJ of each tile, on Monaco's buildings and SRTM terrain."""
+    from netgen.build import TILE_M, _Buildings, _gather, _Streams
+    from netgen.buildings import place_buildings, plan_buildings, write_chunk_buildings
+    from netgen.meshio import ObjBatch, _ascii_lines, tile_index
+    from netgen.osm_features import extract_features
+
+    osm, frame, chunks, bbox, grid = _monaco_inputs()
+    bounds = [frame.chunk_bounds(i, j) for i, j in chunks]
+    plan = plan_buildings(extract_features(osm, frame, bbox), bounds)
+    prepared = _Buildings(chunks, bounds, plan, grid)
+    for k in range(len(chunks)):
+        prepared.prepare(k)
+    (tmp_path / "a").mkdir()
+    for i, j in chunks:
+        (tmp_path / "a" / "chunks" / f"{i}_{j}").mkdir(parents=True)
+    out = prepared.write_claimed(tmp_path / "a", _Streams(False, grid))
+    placed = place_buildings(plan, grid.sample)
+    n = 0
+    for k, ((i, j), r) in enumerate(zip(chunks, placed)):
+        cdir = f"chunks/{i}_{j}"
+        files = write_chunk_buildings(r, tmp_path / "b" / cdir, obj=False)
+        assert {f"buildings_{a}": f"{cdir}/{b}" for a, b in files.items() if b} == out[k]["files"]
+        for name in files.values():
+            if name:
+                assert (tmp_path / "a" / cdir / name).read_bytes() == (tmp_path / "b" / cdir / name).read_bytes()
+        if not r.records:
+            continue
+        t, nt = tile_index(np.array([rec["centroid"] for rec in r.records]), bounds[k], TILE_M)
+        batch = ObjBatch()
+        for tt in np.unique(t):
+            ks = np.flatnonzero(t == tt)
+            V, F, groups = _gather(r.vertices, r.faces, r.vstart, r.fstart, ks, [r.records[m]["id"] for m in ks])
+            batch.add(tmp_path / "b" / cdir / f"{tt}.obj", V, F, groups)
+            rel = out[k]["tiles"][f"{int(tt) // nt}_{int(tt) % nt}"]["building"]
+            batch.write()
+            assert (tmp_path / "a" / rel).read_bytes() == (tmp_path / "b" / cdir / f"{tt}.obj").read_bytes()
+            n += 1
+        # the vertex text: numbers as "%d.%03d" of the rounded millimetres
+        mm = np.rint(r.vertices[:50] * 1000.0).astype(np.int64)
+        want = "".join("v " + " ".join(f"{'-' if m < 0 else ''}{abs(m) // 1000}.{abs(m) % 1000:03d}" for m in row)
+                       + "\n" for row in mm.tolist()).encode()
+        assert _ascii_lines(b"v ", r.vertices[:50], 3)[0] == want
+    assert n > 20
