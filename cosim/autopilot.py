@@ -16,7 +16,8 @@ SUMO step and applies the returned ``(throttle, brake, steer)`` (pedals 0..1, st
 
 The autopilot
 -------------
-Lateral: pure pursuit from the rear axle on the SUMO lane path (``cosim.driving``).
+Lateral: pure pursuit from the rear axle on the SUMO lane path (``cosim.driving``), aimed
+along the rear axle's direction of travel (the tyres' slip angle included).
 
 Longitudinal: a target speed, the minimum of
 
@@ -112,6 +113,11 @@ class Autopilot:
     """The default driver (module doc). ``lidar``: use the ray sensor (needs the PyBullet
     world); ``time_gap``: the ACC's time gap (s, at least 1.5)."""
 
+    # pure pursuit's look-ahead: 0.7 s + 0.008 s per m/s of speed, at least 5 m (shorter at
+    # urban speeds than the former 0.9 s, which cut curves; as long at motorway speed, where
+    # a shorter one oscillates after a sideways jump of the path)
+    STEERING = {"k_ld": 0.7, "k_ld2": 0.008, "ld_min": 5.0}
+
     def __init__(self, sim, lidar: bool = True, time_gap: float = TIME_GAP_S, n_rays: int = 41,
                  lidar_range: float = 70.0):
         from .vehicle import LENGTH, WHEELBASE, WIDTH, min_turn_radius
@@ -121,7 +127,7 @@ class Autopilot:
         self.sim = sim
         self.length, self.width = LENGTH, WIDTH
         self.front = LENGTH / 2.0
-        self.pp = PurePursuit(WHEELBASE, 1.0 / min_turn_radius())
+        self.pp = PurePursuit(WHEELBASE, 1.0 / min_turn_radius(), **self.STEERING)
         self.speed = SpeedController()
         self.time_gap = float(time_gap)
         self.lidar = None
@@ -173,7 +179,8 @@ class Autopilot:
         self._k, _, self._lat = path.project(st.x, st.y, path.index_at(s_here))
         v = st.speed
         t = getattr(sim, "t", 0.0)
-        steer, _ = self.pp.steer(path, st.x, st.y, st.yaw, v, s_here)
+        steer, _ = self.pp.steer(path, st.x, st.y, st.yaw, v, s_here, velocity=getattr(st, "velocity", None),
+                                 yaw_rate=float(getattr(st, "yaw_rate", 0.0)))
         cfg = sim.cfg
         v_set = float(cfg.speed_mps)
         targets = [(v_set, "cruise")]
