@@ -13,16 +13,20 @@ has finished, and what is left runs on both cores. Stages (timed; the report and
    (``terrain_sample``), read buildings and scenery (``features``; from the PBF source
    when there is one), extrude every building on a base of 0 and find where its base
    will be sampled (``buildings_plan``), and generate, test against the buildings and
-   drape the scenery (``scenery_plan``; left to step 4 when netconvert is done first);
+   drape the scenery (``scenery_plan``; left to step 4 when netconvert is done first),
+   and make each chunk's building files but for the heights (``buildings_prepare``: the
+   tiles' face text, the GLB's indices and scene, buildings.json but the bases; chunk by
+   chunk while netconvert runs, the rest where the chunk is written);
 3. read the network while netconvert writes it (``net_read``: netconvert spends about a
    quarter of its time writing, and what the builder needs comes first in the file);
-4. then three streams (:class:`_Streams`): this process meshes the roads and levels the
-   terrain under them (as soon as the roads' levelling support is known, before the rest
-   of the meshing, so that the scenery and buildings need not wait); a forked process builds the carriageway and places the scenery on
-   it (moving poles off it, cutting grass along it) and on the final terrain, and writes
-   it; a second forked process, started once the roads are meshed, writes road tiles.
-   Road tiles and buildings (lifted onto the levelled terrain) are written piece by piece
-   by whichever process is free;
+4. then three streams (:class:`_Streams`): this process meshes the roads; a forked
+   process builds the carriageway and places the scenery on it (moving poles off it,
+   cutting grass along it), levels the terrain under the roads as soon as the meshing has
+   found the levelling support (``terrain_level``; the rest of the meshing goes on here
+   meanwhile), puts the scenery on the final terrain and writes it; a second forked
+   process, started once the roads are meshed, writes road tiles. Road tiles and
+   buildings (lifted onto the levelled terrain: positions and bases into the prepared
+   files) are written piece by piece by whichever process is free;
 5. ``world.json`` last: the world is built in a temporary folder and renamed into place, so
    a killed build never leaves a folder that looks complete (forked processes die with
    the build).
@@ -314,12 +318,17 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         if nc.running():            # else the scenery process plans it, beside the roads
             with T.stage("scenery_plan"):
                 splan = scenery_plan()
+        for i, j in chunks:
+            (tmp / "chunks" / f"{i}_{j}").mkdir(parents=True)
         buildings = _Buildings(chunks, bounds, bplan, grid)
         with T.stage("buildings_prepare"):      # the files but the heights, chunk by chunk
             for k in range(len(chunks)):        # while netconvert runs (else where written)
                 if not nc.running():
                     break
-                buildings.prepare(k)
+                buildings.prepare(k, tmp)
+        streams = _Streams(_parallel(), grid)
+        if streams.parallel:
+            buildings.share(streams.ctx)
         # -- the network, read while netconvert writes it --------------------------------
         progress("roads", 0.0, "meshing roads")
         gc_frozen = _gc_freeze()        # (again before the forks)
@@ -329,11 +338,8 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         counts = net.counts()
         if counts["road_edges"] == 0:
             raise DataError(f"no drivable road in the area (bbox {bbox[0]:.5f},{bbox[1]:.5f},{bbox[2]:.5f},{bbox[3]:.5f})")
-        for i, j in chunks:
-            (tmp / "chunks" / f"{i}_{j}").mkdir(parents=True)
 
         # -- after the network: three streams on the two cores (see _Streams) -----------
-        streams = _Streams(_parallel(), grid)
         with T.stage("roads"):      # the lanes by edge, used by both streams: made once, before the fork
             road_lanes(net)
         if gc_frozen:
@@ -561,13 +567,14 @@ def _die_with_parent() -> None:
 class _Streams:
     """The work after netconvert, on both cores: forked processes and what they share.
 
-    Three streams: this process meshes the roads, levels the terrain and writes the
-    terrain; a child forked right after the network is read (``cosim-layers``) builds the
-    carriageway and places and writes the scenery; a child forked once the roads are
-    meshed (``cosim-tiles``) writes road tiles. Forked children inherit everything they
-    need (nothing is pickled on the way in) and return small dicts through a pipe. The
-    levelled heights go to the children through shared memory (allocated before the
-    forks) once they are final (:meth:`terrain_ready`, :meth:`wait_terrain`). The rest is
+    Three streams: this process meshes the roads and writes the terrain; a child forked
+    right after the network is read (``cosim-layers``) builds the carriageway, places the
+    scenery, levels the terrain (the roads' levelling support comes through a pipe as soon
+    as the meshing has it: :meth:`level`, :meth:`level_here`) and writes the scenery; a
+    child forked once the roads are meshed (``cosim-tiles``) writes road tiles. Forked
+    children inherit everything they need and return small dicts through a pipe. The
+    levelled heights go to the other processes through shared memory (allocated before
+    the forks) once they are final (:meth:`wait_terrain`). The rest is
     shared out as it comes: road tiles (by chunk and tile column; this process and
     cosim-tiles) and buildings (by chunk; all three) are taken one unit at a time by
     whoever is free (:meth:`next_index`). Without a second core (or without fork) nothing
@@ -669,7 +676,7 @@ class _Streams:
                                               daemon=True)
             self._receiver.start()
 
-    def level_here(self, T: Timer) -> None:
+    def level_here(self, T: Timer, then=None) -> None:
         """In cosim-layers: wait for the support, level the terrain and hand the heights to
         the other processes (shared memory, allocated before the forks)."""
         if not (self.parallel and self._in_child) or self._have_terrain:
@@ -684,6 +691,8 @@ class _Streams:
         with T.stage("terrain_level"):
             self.lev = level_under_roads(self.grid, pts, hw)
         np.frombuffer(self._z, dtype=np.float64)[:] = self.grid.z.ravel()
+        if then is not None:        # (what must be shared before the others go on)
+            then()
         self._ready.set()
         self._have_terrain = True
 
@@ -744,7 +753,7 @@ def _layers(tmp: Path, chunks, net, splan, grid, buildings, streams: _Streams) -
         road = PolygonSet(carriageway_parts(net))
     with T.stage("scenery_place"):
         placed = place_scenery(splan, road)
-    streams.level_here(T)           # (in the child: the support comes from the roads)
+    streams.level_here(T, then=buildings.lift)      # (in the child: the support comes from the roads)
     with T.stage("scenery_finish"):
         sres = finish_scenery(placed, grid.sample)
     chunks_out, kinds = [], {}
@@ -790,6 +799,7 @@ class _Buildings:
         self.layouts = None
         self.prepared = {}
         self.base = self.V = None
+        self.shared = None          # shared memory for base and V (see share)
 
     def counts(self) -> tuple:
         """(buildings, heights from tags, heights from levels) over all chunks."""
@@ -797,8 +807,8 @@ class _Buildings:
         return (len(recs), sum(1 for r in recs if r["height_source"] == "height"),
                 sum(1 for r in recs if r["height_source"] == "building:levels"))
 
-    def prepare(self, k: int) -> None:
-        """Chunk k's files but the heights (once)."""
+    def prepare(self, k: int, tmp: Path | None = None) -> None:
+        """Chunk k's files but the heights (once); with `tmp`, make their tile folders."""
         from .buildings import chunk_layouts, glb_template, json_template
         from .meshio import obj_face_texts
 
@@ -819,16 +829,42 @@ class _Buildings:
                 tiles.append((f"{int(tt) // nt}_{int(tt) % nt}", vi))
                 items.append((F, groups))
             tiles = [(name, vi, text) for (name, vi), text in zip(tiles, obj_face_texts(items))]
+            if tmp is not None:
+                i, j = self.chunks[k]
+                for name, _, _ in tiles:
+                    (tmp / "chunks" / f"{i}_{j}" / "tiles" / name).mkdir(parents=True, exist_ok=True)
             glb = glb_template([r["id"] for r in recs], lay.faces, lay.vstart, lay.fstart, lay.material,
                                len(lay.vidx))
         self.prepared[k] = (tiles, glb, json_template(lay.bounds, recs, lay.stats))
 
-    def write_chunk(self, tmp: Path, k: int) -> dict:
+    def share(self, ctx) -> None:
+        """Before the forks: shared memory for the bases and lifted vertices, which the
+        process that levels the terrain fills (:meth:`lift`) before it says the terrain is
+        ready; the other processes then take them from there."""
+        self.shared = (ctx.RawArray("d", len(self.bplan.ids)), ctx.RawArray("d", self.bplan.vertices.size))
+
+    def lift(self) -> None:
+        """Every building's base on the final terrain, and its vertices lifted by it (once;
+        from shared memory when another process made them)."""
         from .buildings import base_heights, lifted_vertices
 
-        if self.V is None:              # all buildings at once (cheap), in each process
-            self.base = base_heights(self.bplan, self.grid.sample)
-            self.V = lifted_vertices(self.bplan, self.base)
+        if self.V is not None:
+            return
+        if self.shared is not None and self.shared_ready:
+            self.base = np.frombuffer(self.shared[0], dtype=np.float64)
+            self.V = np.frombuffer(self.shared[1], dtype=np.float64).reshape(self.bplan.vertices.shape)
+            return
+        self.base = base_heights(self.bplan, self.grid.sample)
+        self.V = lifted_vertices(self.bplan, self.base)
+        if self.shared is not None:
+            np.frombuffer(self.shared[0], dtype=np.float64)[:] = self.base
+            np.frombuffer(self.shared[1], dtype=np.float64)[:] = self.V.ravel()
+            self.shared_ready = True
+
+    shared_ready = False            # set where lift() filled the shared memory, or learnt it was
+
+    def write_chunk(self, tmp: Path, k: int) -> dict:
+        self.lift()
         self.prepare(k)
         tiles_p, glb, jt = self.prepared[k]
         lay = self.layouts[k]
@@ -840,7 +876,7 @@ class _Buildings:
             batch = ObjBatch()
             for name, vi, text in tiles_p:
                 rel = f"{cdir}/tiles/{name}/building.obj"
-                batch.add_prepared(tmp / rel, V[vi], text)
+                batch.add_prepared(f"{tmp}/{rel}", V[vi], text)
                 tiles[name] = {"building": rel}
             batch.write()
             # buildings.obj would repeat the building tiles: the world has the tiles and the GLB
@@ -861,6 +897,7 @@ class _Buildings:
                 return out
             if self.V is None:
                 streams.wait_terrain()
+                self.shared_ready = streams.parallel      # (filled before the terrain was ready)
             out[k] = self.write_chunk(tmp, k)
 
 
@@ -936,32 +973,30 @@ class _RoadTiles:
         returns {tile: {class: file}}."""
         i, j = self.chunks[k]
         cdir = f"chunks/{i}_{j}"
-        files: dict = {}                # (a, b, kind) -> [(V, F, groups)]
+        files: dict = {}                # (a, b, kind) -> [(V, F, part, pieces, face counts)]
         for a, b, kind, part, pieces, V, F, pf in self.items[k]:
-            if a != col:
-                continue
-            pstart = np.cumsum(pf) - pf
-            groups = [(f"{part.elements[p]}/{part.ids[p]}", int(x), int(x + y))
-                      for p, x, y in zip(pieces, pstart, pf)]
-            files.setdefault((a, b, kind), []).append((V, F, groups))
+            if a == col:
+                files.setdefault((a, b, kind), []).append((V, F, part, pieces, pf))
         batch = ObjBatch()
         tiles: dict = {}
         for (a, b, kind), items in sorted(files.items()):
             V, F, groups, off, foff = [], [], [], 0, 0
-            for v, f, gs in items:
+            for v, f, part, pieces, pf in items:
                 V.append(v)
                 F.append(f + off)
-                groups.extend((n, s + foff, e + foff) for n, s, e in gs)
+                end = (np.cumsum(pf) + foff).tolist()       # each piece's faces, in the file
+                els, ids = part.elements, part.ids
+                groups.extend((f"{els[p]}/{ids[p]}", e - n, e) for p, n, e in zip(pieces.tolist(), pf.tolist(), end))
                 off += len(v)
                 foff += len(f)
             rel = f"{cdir}/tiles/{a}_{b}/{kind}.obj"
-            batch.add(tmp / rel, np.vstack(V), np.vstack(F), groups)
+            batch.add(f"{tmp}/{rel}", np.vstack(V), np.vstack(F), groups)
             tiles.setdefault(f"{a}_{b}", {})[kind] = rel
         batch.write()
         if col == 0:
             index = [{"id": part.ids[p], "element": part.elements[p], "class": kind,
                       "osm": [f"way/{w}" for w in part.osm[p]], "tile": f"{a}_{b}"}
-                     for a, b, kind, part, pieces, _, _, _ in self.items[k] for p in pieces]
+                     for a, b, kind, part, pieces, _, _, _ in self.items[k] for p in pieces.tolist()]
             write_file(tmp / cdir / "roads.json",
                        json.dumps({"bounds": list(self.bounds[k]), "pieces": index}).encode())
         return tiles

@@ -194,13 +194,14 @@ class ObjBatch:
         self.files = []
         self._dirs = set()
 
-    def add(self, path: Path, vertices: np.ndarray, faces: np.ndarray, groups=None) -> None:
-        self.files.append((Path(path), np.asarray(vertices, dtype=float).reshape(-1, 3),
+    def add(self, path, vertices: np.ndarray, faces: np.ndarray, groups=None) -> None:
+        self.files.append((os.fspath(path), np.asarray(vertices, dtype=float).reshape(-1, 3),
                            np.asarray(faces, dtype=np.int64).reshape(-1, 3), groups))
 
-    def add_prepared(self, path: Path, vertices: np.ndarray, face_text: bytes) -> None:
+    def add_prepared(self, path, vertices: np.ndarray, face_text: bytes) -> None:
         """A file whose face text (everything after the vertices) is already made."""
-        self.files.append((Path(path), np.asarray(vertices, dtype=float).reshape(-1, 3), bytes(face_text), None))
+        self.files.append((os.fspath(path), np.asarray(vertices, dtype=float).reshape(-1, 3),
+                           bytes(face_text), None))
 
     def write(self) -> None:
         if not self.files:
@@ -210,9 +211,10 @@ class ObjBatch:
         v0 = 0
         for path, v, f, groups in self.files:
             ftext = f if isinstance(f, bytes) else next(made)
-            if path.parent not in self._dirs:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                self._dirs.add(path.parent)
+            folder = os.path.dirname(path)
+            if folder not in self._dirs:
+                os.makedirs(folder, exist_ok=True)
+                self._dirs.add(folder)
             write_file(path, b"".join((self.HEADER, vtext[voff[v0]:voff[v0 + len(v)]], ftext)))
             v0 += len(v)
         self.files = []
@@ -222,11 +224,16 @@ def write_file(path: Path, data: bytes) -> None:
     """Write `data` under a temporary name and rename it into place (no fsync; see above).
 
     An OS error (disk full, permission) is a one-line BuildError."""
-    path = Path(path)
-    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    path = os.fspath(path)                  # (strings: a world has hundreds of files)
+    tmp = f"{path}.tmp-{os.getpid()}"
     try:
-        with open(tmp, "wb") as f:
-            f.write(data)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view):]
+        finally:
+            os.close(fd)
         os.replace(tmp, path)
     except OSError as e:
         try:
