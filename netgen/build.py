@@ -21,9 +21,11 @@ has finished, and what is left runs on both cores. Stages (timed; the report and
    quarter of its time writing, and what the builder needs comes first in the file);
 4. then three streams (:class:`_Streams`): this process meshes the roads; a forked
    process builds the carriageway and places the scenery on it (moving poles off it,
-   cutting grass along it), levels the terrain under the roads as soon as the meshing has
+   cutting grass along it), levels the terrain under the roads once the meshing has
    found the levelling support (``terrain_level``; the rest of the meshing goes on here
-   meanwhile), puts the scenery on the final terrain and writes it; a second forked
+   meanwhile; this process levels instead if it is done with the roads first, as on a
+   city whose scenery takes long to place), puts the scenery on the final terrain and
+   writes it; a second forked
    process, started once the roads are meshed, writes road tiles. Road tiles and
    buildings (lifted onto the levelled terrain: positions and bases into the prepared
    files) are written piece by piece by whichever process is free;
@@ -356,6 +358,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
                 road_tiles = _RoadTiles(chunks, bounds, roads, TILE_M)
             streams.fork("cosim-tiles", lambda: (road_tiles.write_claimed(tmp, streams),
                                                  buildings.write_claimed(tmp, streams)))
+            streams.level_if_free(T, then=buildings.lift)      # if cosim-layers has not begun to
             progress("write", 0.0, "writing chunks")
             with T.stage("write"):
                 tiles = road_tiles.write_claimed(tmp, streams)          # what nobody has taken
@@ -570,7 +573,8 @@ class _Streams:
     Three streams: this process meshes the roads and writes the terrain; a child forked
     right after the network is read (``cosim-layers``) builds the carriageway, places the
     scenery, levels the terrain (the roads' levelling support comes through a pipe as soon
-    as the meshing has it: :meth:`level`, :meth:`level_here`) and writes the scenery; a
+    as the meshing has it, :meth:`level`; whichever process is free first levels,
+    :meth:`level_if_free`) and writes the scenery; a
     child forked once the roads are meshed (``cosim-tiles``) writes road tiles. Forked
     children inherit everything they need and return small dicts through a pipe. The
     levelled heights go to the other processes through shared memory (allocated before
@@ -595,10 +599,10 @@ class _Streams:
             self.ctx = mp.get_context("fork")
             self._z = self.ctx.RawArray("d", grid.z.size)
             self._ready = self.ctx.Event()
-            self._claims = self.ctx.Array("i", 2)     # next road-tile unit, next building chunk
+            self._claims = self.ctx.Array("i", 3)     # next road-tile unit, building chunk; leveller
             self._sup_r, self._sup_w = self.ctx.Pipe(duplex=False)     # the levelling support
         else:
-            self._claims = [0, 0]
+            self._claims = [0, 0, 0]
 
     def __enter__(self):
         return self
@@ -653,10 +657,11 @@ class _Streams:
 
     # -- sharing -----------------------------------------------------------------------------
     def level(self, pts, hw, T: Timer) -> None:
-        """The roads' levelling support is known: hand it to cosim-layers, which levels the
-        terrain (:meth:`level_here`) while this process meshes the rest of the roads; without
-        children, level here."""
+        """The roads' levelling support is known: hand it to cosim-layers, so that whichever
+        process is free first levels the terrain (:meth:`level_if_free`) while this one
+        meshes the rest of the roads; without children, level here."""
         if self.parallel:
+            self._support_here = (pts, hw)
             self._sup_w.send((pts, hw))
             return
         from .terrain import level_under_roads
@@ -665,9 +670,11 @@ class _Streams:
             self.lev = level_under_roads(self.grid, pts, hw)
         self._have_terrain = True
 
+    _support_here = None
+
     def receive_support(self) -> None:
         """In cosim-layers, first thing: a thread takes the support in as soon as it is sent
-        (the sender would otherwise block on the full pipe until :meth:`level_here`)."""
+        (the sender would otherwise block on the full pipe)."""
         import threading
 
         if self.parallel and self._in_child:
@@ -676,22 +683,35 @@ class _Streams:
                                               daemon=True)
             self._receiver.start()
 
-    def level_here(self, T: Timer, then=None) -> None:
-        """In cosim-layers: wait for the support, level the terrain and hand the heights to
-        the other processes (shared memory, allocated before the forks)."""
-        if not (self.parallel and self._in_child) or self._have_terrain:
+    def level_if_free(self, T: Timer, then=None, wait: bool = False) -> None:
+        """Level the terrain here if the support is known and no other process has started
+        to (cosim-layers checks between its steps, this process once the roads are meshed;
+        with `wait`, cosim-layers first waits for the support), then hand the heights to the
+        others (shared memory, allocated before the forks); `then` runs before they are told
+        (what they must find ready too)."""
+        if not self.parallel or self._have_terrain:
             return
+        if self._in_child:
+            if not self._support:
+                if not wait:
+                    return
+                with T.stage("terrain_support_wait"):
+                    self._receiver.join()
+                if not self._support:
+                    raise BuildError("the roads' levelling support never came")
+            pts, hw = self._support[-1]
+        elif self._support_here is None:
+            return
+        else:
+            pts, hw = self._support_here
+        if self.next_index("level"):
+            return                  # another process levels
         from .terrain import level_under_roads
 
-        with T.stage("terrain_support_wait"):
-            self._receiver.join()
-            if not self._support:
-                raise BuildError("the roads' levelling support never came")
-            pts, hw = self._support.pop()
         with T.stage("terrain_level"):
             self.lev = level_under_roads(self.grid, pts, hw)
         np.frombuffer(self._z, dtype=np.float64)[:] = self.grid.z.ravel()
-        if then is not None:        # (what must be shared before the others go on)
+        if then is not None:
             then()
         self._ready.set()
         self._have_terrain = True
@@ -704,7 +724,7 @@ class _Streams:
         if self._in_child:
             self._ready.wait()
         else:
-            while not self._ready.wait(0.02):
+            while not self._ready.wait(0.02):       # (cosim-layers may be levelling)
                 proc, res_r = self.children[0]
                 if not proc.is_alive() and not self._ready.is_set():
                     self._raise_from(proc, res_r)
@@ -726,7 +746,7 @@ class _Streams:
     def next_index(self, what: str) -> int:
         """The next unit of `what` ("roads" or "buildings") to write: 0, 1, 2, ... across
         all processes, so that each unit is written once, by whoever was free."""
-        c = ("roads", "buildings").index(what)
+        c = ("roads", "buildings", "level").index(what)
         if not self.parallel:
             k = self._claims[c]
             self._claims[c] += 1
@@ -751,9 +771,12 @@ def _layers(tmp: Path, chunks, net, splan, grid, buildings, streams: _Streams) -
             splan = splan()
     with T.stage("carriageway"):
         road = PolygonSet(carriageway_parts(net))
-    with T.stage("scenery_place"):
+    streams.level_if_free(T, then=buildings.lift)               # (in the child: the support
+    with T.stage("scenery_place"):                              # comes from the roads)
         placed = place_scenery(splan, road)
-    streams.level_here(T, then=buildings.lift)      # (in the child: the support comes from the roads)
+    streams.level_if_free(T, then=buildings.lift, wait=True)
+    with T.stage("scenery_terrain_wait"):
+        streams.wait_terrain()
     with T.stage("scenery_finish"):
         sres = finish_scenery(placed, grid.sample)
     chunks_out, kinds = [], {}
