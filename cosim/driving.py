@@ -84,6 +84,27 @@ def _segment_intersection(p, q, a, b):
     return None
 
 
+def _first_crossing(path: np.ndarray, shape: np.ndarray):
+    """(a, t) of the first segment path[a] -> path[a+1] (then the first segment of ``shape``)
+    that crosses ``shape``, t along that path segment, or None: ``_segment_intersection`` over
+    all pairs in that order, in one numpy pass."""
+    p, r = path[:-1, None, :], (path[1:] - path[:-1])[:, None, :]
+    a, s = shape[None, :-1, :], (shape[1:] - shape[:-1])[None, :, :]
+    den = r[..., 0] * s[..., 1] - r[..., 1] * s[..., 0]
+    w = a - p
+    ok = np.abs(den) >= 1e-12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (w[..., 0] * s[..., 1] - w[..., 1] * s[..., 0]) / den
+        u = (w[..., 0] * r[..., 1] - w[..., 1] * r[..., 0]) / den
+    hit = ok & (t >= -1e-9) & (t <= 1 + 1e-9) & (u >= -1e-9) & (u <= 1 + 1e-9)
+    rows = np.flatnonzero(hit.any(axis=1))
+    if not len(rows):
+        return None
+    ia = int(rows[0])
+    ib = int(np.argmax(hit[ia]))
+    return ia, float(t[ia, ib])
+
+
 def _turnaround(sim, edge: str, nxt: str) -> bool:
     """Does the route's step edge -> nxt use a turnaround ('t') link (and no other)?"""
     found = other = False
@@ -448,11 +469,11 @@ class LanePath:
 
     def _find_crossings(self, sim) -> list[CrossingOnPath]:
         out = []
-        seen = set()
-        for i, (lane, edge) in enumerate(self.lane_of):
-            if not lane.startswith(":") or lane in seen:
-                continue
-            seen.add(lane)
+        span: dict = {}            # junction lane -> (first, last) index of its path points
+        for i, (lane, _) in enumerate(self.lane_of):
+            if lane.startswith(":"):
+                span[lane] = (span[lane][0], i) if lane in span else (i, i)
+        for lane, (i0, i1) in span.items():
             try:
                 foes = sim.lane.getInternalFoes(lane)
             except Exception:
@@ -465,20 +486,13 @@ class LanePath:
                 if len(shape) < 2:
                     continue
                 # where the path meets the crossing (search around this junction lane)
-                idx = [k for k, (ln, _) in enumerate(self.lane_of) if ln == lane]
-                a0 = max(0, idx[0] - 25)
-                a1 = min(len(self.xy) - 1, idx[-1] + 25)
-                s_hit = None
-                for a in range(a0, a1):
-                    for b in range(len(shape) - 1):
-                        t = _segment_intersection(self.xy[a], self.xy[a + 1], shape[b], shape[b + 1])
-                        if t is not None:
-                            s_hit = float(self.s[a] + t * (self.s[a + 1] - self.s[a]))
-                            break
-                    if s_hit is not None:
-                        break
-                if s_hit is None:
+                a0 = max(0, i0 - 25)
+                a1 = min(len(self.xy) - 1, i1 + 25)
+                hit = _first_crossing(self.xy[a0:a1 + 1], shape) if a1 > a0 else None
+                if hit is None:
                     continue
+                a = a0 + hit[0]
+                s_hit = float(self.s[a] + hit[1] * (self.s[a + 1] - self.s[a]))
                 out.append(CrossingOnPath(s=s_hit, edge=foe.rsplit("_", 1)[0], lane=foe,
                                           width=float(sim.lane.getWidth(foe)), junction=m.group(1), shape=shape))
         out.sort(key=lambda c: c.s)

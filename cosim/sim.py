@@ -129,6 +129,7 @@ class Simulation:
         self.streamer = None
         self._pipelined = False            # SUMO in a worker process (cosim.sumo_process)
         self._restart_notes: list = []
+        self._replan_pending = False       # a swap came in a junction: re-plan after it
         self._setup_done = False
 
     # ------------------------------------------------------------------------------------
@@ -219,28 +220,11 @@ class Simulation:
         return World(w["out"])
 
     def _snap(self, x: float, y: float, what: str):
-        """Nearest lane a car may use: (lane id, position on lane, snapped x, y, distance)."""
-        s = self.traffic.sumo
+        """Nearest lane a car may use: (lane id, position on lane, snapped x, y, yaw, distance)."""
         try:
-            edge, pos, idx = s.simulation.convertRoad(x, y, False, "passenger")
-        except Exception as e:  # libsumo raises its own error type
-            raise InputError(f"{what}: no road for cars near ({x:.0f}, {y:.0f}) m: {e}") from None
-        lane = f"{edge}_{idx}"
-        guard = 0
-        while lane.startswith(":") and guard < 5:      # inside a junction: the lane it leads into
-            links = s.lane.getLinks(lane)
-            if not links:
-                break
-            lane, pos, guard = links[0][0], 0.0, guard + 1
-        shape = np.array(s.lane.getShape(lane))
-        d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(shape, axis=0).T))])
-        pos = min(max(pos, 0.0), d[-1])
-        k = min(max(int(np.searchsorted(d, pos)), 1), len(shape) - 1)
-        t = (pos - d[k - 1]) / max(d[k] - d[k - 1], 1e-9)
-        px, py = shape[k - 1] + t * (shape[k] - shape[k - 1])
-        yaw = math.atan2(shape[k, 1] - shape[k - 1, 1], shape[k, 0] - shape[k - 1, 0])
-        dist = math.hypot(px - x, py - y)
-        return lane, pos, float(px), float(py), yaw, dist
+            return self.traffic.snap_lane(x, y)
+        except SimulationError as e:
+            raise InputError(f"{what}: {e}") from None
 
     def _snap_start(self):
         cfg = self.cfg
@@ -258,44 +242,44 @@ class Simulation:
         return px, py, yaw, lane, pos
 
     def _plan_route(self, lane: str, pos: float):
-        s = self.traffic.sumo
-        edge = lane.rsplit("_", 1)[0]
+        try:
+            plan = self.traffic.plan_route(lane, pos, **self._plan_kw())
+        except SimulationError as e:
+            if "no road for cars" in str(e):      # the goal's
+                raise InputError(f"goal: {e}") from None
+            raise
+        self._apply_plan(plan)
+
+    def _plan_kw(self) -> dict:
+        goal = None
         if self.cfg.goal:
             gx, gy = self.world.frame.to_xy(self.cfg.goal[1], self.cfg.goal[0])
-            glane, gpos, gpx, gpy, _, gdist = self._snap(float(gx), float(gy), "goal")
-            if gdist > self.cfg.max_snap_m:
-                raise InputError(f"goal is {gdist:.0f} m from the nearest road for cars")
-            self.goal_xy = (gpx, gpy)
-            gedge = glane.rsplit("_", 1)[0]
-            r = s.simulation.findRoute(edge, gedge, vType="DEFAULT_VEHTYPE")
-            if not r.edges:
+            goal = (float(gx), float(gy))
+        return dict(goal_xy=goal, rng_state=self._rng.getstate(), max_goal_snap_m=self.cfg.max_snap_m)
+
+    def _apply_plan(self, plan: dict):
+        """Take a route planned by ``SumoTraffic.plan_route`` (where SUMO runs)."""
+        g = plan["goal"]
+        if g is not None:
+            if g["dist"] > self.cfg.max_snap_m:
+                raise InputError(f"goal is {g['dist']:.0f} m from the nearest road for cars")
+            if not plan["route"]:
                 raise InputError("goal unreachable: no route by road from the start to the goal")
-            self.route = list(r.edges)
+            self.goal_xy = (g["x"], g["y"])
             self.summary.arrived = False
-            self.snap_info.update({"goal_snap_m": round(gdist, 2), "route_length_m": round(r.length, 1),
-                                   "eta_s": round(r.travelTime, 1)})
+            self.snap_info.update({"goal_snap_m": round(g["dist"], 2), "route_length_m": round(plan["length"], 1),
+                                   "eta_s": round(plan["eta"], 1)})
         else:
-            self.route = self._random_route(edge)
-        self.path = self.traffic.lane_path(self.route, start_lane=lane, start_pos=pos)
+            self.goal_xy = None
+            self._rng.setstate(plan["rng_state"])
+        self.route = plan["route"]
+        self.path = plan["path"]
         self._path_idx = 0
 
     def _random_route(self, edge: str, min_len: float = 800.0) -> list[str]:
-        s = self.traffic.sumo
-        edges = [e for e in s.edge.getIDList() if not e.startswith(":")]
-        best = [edge]
-        for _ in range(40):
-            to = self._rng.choice(edges)
-            try:
-                r = s.simulation.findRoute(edge, to, vType="DEFAULT_VEHTYPE")
-            except Exception:
-                continue
-            if r.edges and r.length >= min_len:
-                return list(r.edges)
-            if r.edges and len(r.edges) > len(best):
-                best = list(r.edges)
-        if len(best) < 2:
-            raise SimulationError(f"no route for the ego from edge {edge}")
-        return best
+        route, state = self.traffic.random_route(edge, self._rng.getstate(), min_len)
+        self._rng.setstate(state)
+        return route
 
     # ------------------------------------------------------------------------------------
     def ego_state(self) -> EgoState:
@@ -384,6 +368,8 @@ class Simulation:
                 and abs(st.speed) < 1.0:
             self.summary.arrived = True
         # streaming
+        if self._replan_pending and not self.path.lane_of[self._path_idx][0].startswith(":"):
+            self.replan()                   # after a swap in a junction: now on the lane after it
         self.physics.update(st.x, st.y, self.keep_radius)
         self.streamer.step(st.x, st.y)
         if not self._covered(st.x, st.y):
@@ -480,30 +466,18 @@ class Simulation:
         })
 
     def replan(self):
-        """Plan the route again from where the car is (after a SUMO network swap): on the
-        first lane of its current path, from here on, that the new network has (so the car
-        keeps its lane and direction), else the nearest lane."""
+        """Plan the route again from where the car is (after a SUMO network swap), from the
+        car's own position, so the new path starts under the car (``SumoTraffic.replan_from``).
+        In a junction this waits until the car is on the lane after it (the old path's
+        geometry holds until then)."""
         st = self.vehicle.state()
         k, _, _ = self.path.project(st.x, st.y, self._path_idx)
-        s = self.traffic.sumo
-        lane, pos = None, 0.0
-        seen = set()
-        for j in range(k, len(self.path.lane_of)):
-            cand = self.path.lane_of[j][0]
-            if cand in seen or cand.startswith(":"):
-                continue
-            seen.add(cand)
-            try:
-                s.lane.getLength(cand)
-            except Exception:
-                continue
-            lane = cand
-            pos = self._lane_pos(cand, st.x, st.y) if j == k else 0.0
-            break
-        if lane is None:
-            lane, pos, *_ = self._snap(st.x, st.y, "ego")
-        self.goal_xy = None
-        self._plan_route(lane, pos)
+        if self.path.lane_of[k][0].startswith(":"):
+            self._replan_pending = True
+            return
+        self._replan_pending = False
+        lanes = list(dict.fromkeys(ln for ln, _ in self.path.lane_of[k:]))
+        self._apply_plan(self.traffic.replan_from(lanes, st.x, st.y, st.yaw, **self._plan_kw()))
 
     # --- live controls (GUI, keyboard, scripts) -------------------------------------------
     def set_speed(self, mps: float):
@@ -540,18 +514,7 @@ class Simulation:
         return {k: self.snap_info.get(k) for k in ("route_length_m", "eta_s", "goal_snap_m")}
 
     def _lane_pos(self, lane, x, y) -> float:
-        shape = np.array(self.traffic.sumo.lane.getShape(lane))
-        d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(shape, axis=0).T))])
-        best, bd = 0.0, float("inf")
-        for a in range(len(shape) - 1):
-            p, q = shape[a], shape[a + 1]
-            v = q - p
-            L2 = float(v @ v) or 1e-9
-            t = max(0.0, min(1.0, float((np.array([x, y]) - p) @ v) / L2))
-            dd = float(np.hypot(*(p + t * v - (x, y))))
-            if dd < bd:
-                bd, best = dd, d[a] + t * math.sqrt(L2)
-        return best
+        return self.traffic.lane_pos(lane, x, y)
 
     def set_manual(self, control: tuple | None):
         """(throttle, brake, steer) to drive by hand, or None to give control back to the driver."""

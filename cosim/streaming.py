@@ -70,6 +70,7 @@ class WorldStreamer:
         self.swap_ms: list = []
         self.swap_phases_ms: list = []    # per swap: {phase: ms}
         self.ready = None                 # (window, out, routes) built, SUMO loading for it
+        self.plan_asked = False           # the car's route asked of the SUMO started ahead
         self.build_s: list = []
         self.errors: list = []
         self.enabled = self.base_cfg is not None
@@ -87,12 +88,7 @@ class WorldStreamer:
         if not self.enabled:
             return
         if self.ready is not None:
-            traffic = self.sim.traffic
-            # (a SUMO restarted after a crash has lost what was prepared: swap the slow way)
-            if getattr(traffic, "preparing", None) is None or traffic.prepared_ready():
-                window, out, routes = self.ready
-                self.ready = None
-                self._swap(window, out, routes)
+            self._swap_when_ready()
             return
         ij = self.sim.world.frame.chunk_of(x, y)
         if self.proc is None and ij != self.center and ij not in self.built:
@@ -126,6 +122,32 @@ class WorldStreamer:
             else:
                 self._swap(window, out, routes)
 
+    def _swap_when_ready(self):
+        """With SUMO started ahead on the new network: once it has loaded, it plans the car's
+        route from where the car is (in the background too; in a junction, once past it), and
+        once that is answered the swap takes both. (A SUMO restarted after a crash has lost
+        what was prepared: then swap at once, the slow way.)"""
+        sim, traffic = self.sim, self.sim.traffic
+        if getattr(traffic, "preparing", None) is not None:
+            if not traffic.prepared_ready():
+                return
+            if not self.plan_asked:
+                st = sim.vehicle.state()
+                k, _, _ = sim.path.project(st.x, st.y, sim._path_idx)
+                if sim.path.lane_of[k][0].startswith(":"):
+                    return
+                lanes = list(dict.fromkeys(ln for ln, _ in sim.path.lane_of[k:]))
+                traffic.prepare_call("plan", "replan_from", lanes, st.x, st.y, st.yaw, **sim._plan_kw())
+                self.plan_asked = True
+                return
+        plan, err = traffic.prepared_result("plan") if self.plan_asked else (None, None)
+        if err is not None:
+            log.info("planning the route on the next network failed (%s): planned again after the swap", err)
+        window, out, routes = self.ready
+        self.ready = None
+        self.plan_asked = False
+        self._swap(window, out, routes, plan)
+
     @staticmethod
     def _net_of(out) -> Path:
         from .world import World
@@ -141,7 +163,7 @@ class WorldStreamer:
         self.job_started = time.perf_counter()
         log.info("building the window around chunk %s in the background", window)
 
-    def _swap(self, window, out, routes):
+    def _swap(self, window, out, routes, plan=None):
         sim = self.sim
         t0 = time.perf_counter()
         phases = {}
@@ -159,7 +181,12 @@ class WorldStreamer:
         sim._routes = list(routes)          # what SUMO restarts on, should its worker crash
         lap("sumo")
         sim.mirror.rekey(mapping)
-        sim.replan()
+        if plan is not None:                # planned ahead, from where the car was a moment ago
+            sim._apply_plan(plan)
+            st = sim.vehicle.state()
+            sim._path_idx = sim.path.project(st.x, st.y, 0)[0]
+        else:
+            sim.replan()
         lap("replan")
         self.center = window
         self.built.add(window)

@@ -479,18 +479,41 @@ class TrafficProcess(Component):
             proc, conn = start_worker("cosim.sumo_process")
         except OSError as e:
             raise SimulationError(f"cannot start SUMO's worker process: {e}") from None
-        nxt = dict(proc=proc, conn=conn, args=args, pending=0, error=None)
+        nxt = dict(proc=proc, conn=conn, args=args, tags=[], error=None, results={}, errors={})
         self._next = nxt
         try:
             conn.send((args, self._kwargs, level))
-            # load; one step (the demand's trips in progress are inserted: swap_adopt's first
-            # step, taken ahead); build SUMO's lane lookup (see SumoTraffic.warm_up)
-            for msg in (("call", ("setup",), (), {}), ("call", ("step",), (), {}), ("call", ("warm_up",), (), {})):
-                conn.send(msg)
-                nxt["pending"] += 1
         except (EOFError, OSError, BrokenPipeError):
             nxt["error"] = SimulationError("SUMO's worker process for the next network ended at once")
-            nxt["pending"] = 0
+            return
+        # load, and swap_adopt's first second (SumoTraffic.warm_up), taken ahead
+        self._prepared_call(None, "setup")
+        self._prepared_call(None, "warm_up")
+
+    def _prepared_call(self, tag, name, *args, **kwargs) -> None:
+        """Send a call to the prepared SUMO; with a tag its answer (or error) is kept under it
+        (``prepared_result``), untagged an error makes the prepared SUMO unusable."""
+        nxt = self._next
+        if nxt is None or nxt["error"] is not None:
+            return
+        try:
+            nxt["conn"].send(("call", (name,), args, kwargs))
+            nxt["tags"].append(tag)
+        except (EOFError, OSError, BrokenPipeError):
+            nxt["error"] = SimulationError("SUMO's worker process for the next network ended unexpectedly")
+            nxt["tags"] = []
+
+    def prepare_call(self, tag: str, name: str, *args, **kwargs) -> None:
+        """Ask the SUMO started by ``prepare_network`` for ``name(*args, **kwargs)`` (a method
+        of SumoTraffic) in the background, before the swap: the route from where the car will
+        be, for instance. ``prepared_ready()`` turns True when it is answered; the answer is
+        ``prepared_result(tag)``."""
+        self._prepared_call(tag, name, *args, **kwargs)
+
+    def prepared_result(self, tag: str):
+        """(value, error) of a tagged ``prepare_call``; (None, None) if there is none."""
+        nxt = self._next or {}
+        return nxt.get("results", {}).get(tag), nxt.get("errors", {}).get(tag)
 
     @property
     def preparing(self):
@@ -503,22 +526,23 @@ class TrafficProcess(Component):
         nxt = self._next
         if nxt is None:
             return False
-        while nxt["pending"] and (block or nxt["conn"].poll()):
+        while nxt["tags"] and (block or nxt["conn"].poll()):
             try:
                 status, value, _state, records = nxt["conn"].recv()
             except (EOFError, OSError):
                 code = nxt["proc"].poll()
                 nxt["error"] = SimulationError(
                     f"SUMO's worker process for the next network ended unexpectedly (exit code {code})")
-                nxt["pending"] = 0
+                nxt["tags"] = []
                 break
-            nxt["pending"] -= 1
+            tag = nxt["tags"].pop(0)
             for name, level, msg in records:
                 logging.getLogger(name).log(level, "%s", msg)
-            if status == "err" and nxt["error"] is None:
+            if tag is not None:
+                nxt["errors" if status == "err" else "results"][tag] = value
+            elif status == "err" and nxt["error"] is None:
                 nxt["error"] = value
-                nxt["pending"] = 0
-        return not nxt["pending"]
+        return not nxt["tags"]
 
     def discard_prepared(self) -> None:
         nxt, self._next = self._next, None

@@ -38,6 +38,7 @@ import contextlib
 import logging
 import math
 import os
+import random
 import re
 import shutil
 import sys
@@ -182,6 +183,7 @@ class TrafficStats:
     _seen_collisions: set = field(default_factory=set, repr=False)
 
 
+SWAP_WARM_S = 1.0          # a new SUMO runs this long before actors are carried into it
 SWAP_ROOM_MARGIN_M = 20.0    # the new SUMO's own actors this far beyond the kept ones make room
 
 
@@ -747,20 +749,137 @@ class SumoTraffic(Component):
                               a[5][keep], a[6][keep], a[7][keep], lanes[keep])
 
     def warm_up(self) -> None:
-        """Do now what the first swap_adopt / lane_path would pay for: SUMO builds its lane
-        lookup (for convertRoad, moveToXY) on first use, and the driving module loads (in a
-        fresh worker process)."""
+        """Run a SUMO just started on a network up to ``SWAP_WARM_S``, paying now what its first
+        second costs anyway: SUMO builds its lane lookup (convertRoad, moveToXY) and its
+        intermodal router (for persons) on first use, 0.1-0.3 s each on a city network, and the
+        driving module loads (in a fresh worker process). ``swap_adopt`` calls it; a SUMO
+        started ahead of a swap (``TrafficProcess.prepare_network``) runs it in the background."""
         from . import driving  # noqa: F401
 
         s = self._require()
-        for e in self._edge_set():
-            if not e.startswith(":"):
-                x, y = s.lane.getShape(f"{e}_0")[0]
-                try:
-                    s.simulation.convertRoad(x, y, False, "passenger")
-                except self._exc:
-                    pass
+        if s.simulation.getTime() >= SWAP_WARM_S - 1e-9:
+            return
+        edges = sorted(e for e in self._edge_set() if not e.startswith(":"))
+        if edges:
+            x, y = s.lane.getShape(f"{edges[0]}_0")[0]
+            try:
+                s.simulation.convertRoad(x, y, False, "passenger")
+                s.simulation.findIntermodalRoute(edges[0], edges[-1], modes="")
+            except self._exc:
+                pass
+        while s.simulation.getTime() < SWAP_WARM_S - 1e-9:
+            self.step()
+
+    # --- route planning for the ego (runs where SUMO runs: in its worker, one round trip) ---
+    def snap_lane(self, x: float, y: float, vclass: str = "passenger"):
+        """The nearest lane a ``vclass`` may use (inside a junction: the lane it leads into):
+        (lane id, position on lane, snapped x, y, lane heading in rad, distance)."""
+        s = self._require()
+        try:
+            edge, pos, idx = s.simulation.convertRoad(x, y, False, vclass)
+        except self._exc as e:
+            raise SimulationError(f"no road for cars near ({x:.0f}, {y:.0f}) m: {e}") from None
+        lane = f"{edge}_{idx}"
+        guard = 0
+        while lane.startswith(":") and guard < 5:
+            links = s.lane.getLinks(lane)
+            if not links:
                 break
+            lane, pos, guard = links[0][0], 0.0, guard + 1
+        shape = np.array(s.lane.getShape(lane))
+        d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(shape, axis=0).T))])
+        pos = min(max(pos, 0.0), d[-1])
+        k = min(max(int(np.searchsorted(d, pos)), 1), len(shape) - 1)
+        t = (pos - d[k - 1]) / max(d[k] - d[k - 1], 1e-9)
+        px, py = shape[k - 1] + t * (shape[k] - shape[k - 1])
+        yaw = math.atan2(shape[k, 1] - shape[k - 1, 1], shape[k, 0] - shape[k - 1, 0])
+        return lane, float(pos), float(px), float(py), yaw, math.hypot(px - x, py - y)
+
+    def lane_pos(self, lane: str, x: float, y: float) -> float:
+        """Position along ``lane`` of the point of it nearest to (x, y)."""
+        shape = np.array(self._require().lane.getShape(lane), dtype=float)
+        p, v = shape[:-1], np.diff(shape, axis=0)
+        L2 = np.maximum(np.einsum("ij,ij->i", v, v), 1e-18)
+        t = np.clip(np.einsum("ij,ij->i", np.array([x, y]) - p, v) / L2, 0.0, 1.0)
+        dd = np.hypot(*(p + t[:, None] * v - (x, y)).T)
+        a = int(np.argmin(dd))
+        return float(np.concatenate([[0.0], np.cumsum(np.sqrt(L2))])[a] + t[a] * math.sqrt(L2[a]))
+
+    def random_route(self, edge: str, rng_state, min_len: float = 800.0):
+        """A route from ``edge`` of at least ``min_len`` m to an edge drawn at random (else the
+        longest of 40 tries): (edges, the random generator's state after the draws)."""
+        s = self._require()
+        rng = random.Random()
+        rng.setstate(rng_state)
+        edges = [e for e in s.edge.getIDList() if not e.startswith(":")]
+        best = [edge]
+        for _ in range(40):
+            to = rng.choice(edges)
+            try:
+                r = s.simulation.findRoute(edge, to, vType="DEFAULT_VEHTYPE")
+            except self._exc:
+                continue
+            if r.edges and r.length >= min_len:
+                return list(r.edges), rng.getstate()
+            if r.edges and len(r.edges) > len(best):
+                best = list(r.edges)
+        if len(best) < 2:
+            raise SimulationError(f"no route for the ego from edge {edge}")
+        return best, rng.getstate()
+
+    def plan_route(self, lane: str, pos: float, goal_xy=None, rng_state=None, max_goal_snap_m: float = 1e9,
+                   min_len: float = 800.0) -> dict:
+        """The ego's route from ``pos`` on ``lane``, and its ``LanePath``: to the lane nearest to
+        ``goal_xy`` (SUMO's router), else a random route (``random_route``). ``goal`` in the
+        answer: snapped lane, point and distance; ``route`` is empty and ``path`` None when the
+        goal is too far from a road or cannot be reached."""
+        s = self._require()
+        edge = lane.rsplit("_", 1)[0]
+        out = dict(lane=lane, pos=float(pos), goal=None, length=None, eta=None, rng_state=rng_state)
+        if goal_xy is not None:
+            glane, gpos, gpx, gpy, _, gdist = self.snap_lane(float(goal_xy[0]), float(goal_xy[1]))
+            out["goal"] = dict(lane=glane, pos=gpos, x=gpx, y=gpy, dist=gdist)
+            if gdist > max_goal_snap_m:
+                return dict(out, route=[], path=None)
+            try:
+                r = s.simulation.findRoute(edge, glane.rsplit("_", 1)[0], vType="DEFAULT_VEHTYPE")
+            except self._exc:
+                return dict(out, route=[], path=None)
+            if not r.edges:
+                return dict(out, route=[], path=None)
+            route = list(r.edges)
+            out.update(length=float(r.length), eta=float(r.travelTime))
+        else:
+            route, out["rng_state"] = self.random_route(edge, rng_state, min_len)
+        return dict(out, route=route, path=self.lane_path(route, start_lane=lane, start_pos=pos))
+
+    def replan_from(self, lanes, x: float, y: float, yaw: float, **kw) -> dict:
+        """``plan_route`` from the car at (x, y, yaw) on this network (after a swap): from its
+        position on ``lanes[0]`` (the lane it is on in the old path) if this network has that
+        lane; else from the lane under it if that runs its way; else from the start of the
+        next of ``lanes`` this network has; else from the nearest lane."""
+        self._require()
+        known = self._lane_set()
+        start = None
+        if lanes and lanes[0] in known:
+            start = (lanes[0], self.lane_pos(lanes[0], x, y))
+        else:
+            try:
+                cand, cpos, _, _, lyaw, dist = self.snap_lane(x, y)
+                if dist < 2.0 and abs(math.remainder(lyaw - yaw, math.tau)) < math.pi / 4:
+                    start = (cand, cpos)
+            except SimulationError:
+                pass
+        if start is None:
+            nxt = next((ln for ln in lanes[1:] if ln in known and not ln.startswith(":")), None)
+            start = (nxt, 0.0) if nxt else self.snap_lane(x, y)[:2]
+        return self.plan_route(start[0], start[1], **kw)
+
+    def _lane_set(self) -> set:
+        if getattr(self, "_lanes_cache_net", None) != str(self.net_file):
+            self._lanes_cache = set(self._sim.lane.getIDList())
+            self._lanes_cache_net = str(self.net_file)
+        return self._lanes_cache
 
     def lane_path(self, edges: Sequence[str], start_lane: str | None = None, start_pos: float = 0.0):
         """``cosim.driving.LanePath`` along ``edges`` on this SUMO's network. Built where SUMO
@@ -910,8 +1029,7 @@ class SumoTraffic(Component):
         the clock continues. Returns old id -> new id of the actors carried over."""
         s = self._require()
         self._generation = max(self._generation, int(carry["generation"]) + 1)
-        if s.simulation.getTime() <= 0.0:
-            self.step()                       # the demand's trips in progress are inserted now
+        self.warm_up()                        # (the demand's trips in progress are inserted)
         cx, cy = carry["center"]
         self._make_room(cx, cy, carry["keep_radius"] + SWAP_ROOM_MARGIN_M)
         self.stats = carry["stats"]
@@ -948,7 +1066,8 @@ class SumoTraffic(Component):
                 continue
             try:
                 if not k.person:
-                    s.vehicle.moveToXY(nid, "", k.lane, k.x, k.y, k.angle, keepRoute=2)
+                    s.vehicle.moveToXY(nid, "", k.lane, k.x, k.y, k.angle, keepRoute=2,
+                                       matchThreshold=EGO_MATCH_RADIUS_M)
             except self._exc as e:
                 log.debug("swap: %s: %s", nid, e)
         if ego_spec is not None and ego is not None:
@@ -970,8 +1089,9 @@ class SumoTraffic(Component):
         return mapping
 
     def _make_room(self, cx: float, cy: float, radius: float) -> int:
-        """Remove this SUMO's own vehicles and persons within ``radius`` of (cx, cy): the
-        actors carried over from the previous SUMO stand there."""
+        """Remove this SUMO's own vehicles within ``radius`` of (cx, cy): the vehicles carried
+        over from the previous SUMO stand there. (Persons may overlap; and removing walking
+        persons made libsumo crash in a later step.)"""
         s = self._sim
         n = 0
         try:
@@ -979,8 +1099,10 @@ class SumoTraffic(Component):
         except self._exc:
             return 0
         for aid, kind in zip(snap.ids, snap.kind):
+            if kind == "person":
+                continue
             try:
-                (s.person if kind == "person" else s.vehicle).remove(aid)
+                s.vehicle.remove(aid)
                 n += 1
             except self._exc:
                 pass
@@ -1063,17 +1185,22 @@ class SumoTraffic(Component):
         self._ensure_type(k.type_id, k.type_params, person=k.person)
         vclass = "pedestrian" if k.person else k.type_params.get("vclass", "passenger")
         edges = [e for e in k.edges if e in edges_known]
-        # the edge under the actor in the new network: its lane, if the new network has it
-        # unchanged, else SUMO's map matching (convertRoad: 10-20 ms a call on a city network)
-        if self._same_lane(k):
+        # where to insert it (moveToXY then puts it exactly where it was): on its lane, if the
+        # new network has that lane unchanged; inside a junction or on an edge that changed,
+        # on the first edge of the rest of its route; else where SUMO's map matching puts it
+        # (convertRoad: 10-50 ms a call on a city network)
+        same = self._same_lane(k)
+        if same:
             road, pos, lane = k.edge, k.lane_pos, k.lane
+        elif edges and (k.edge.startswith(":") or k.edge == edges[0]):
+            road, pos, lane = edges[0], 0.0, -1
         else:
             try:
                 road, pos, lane = s.simulation.convertRoad(k.x, k.y, False, vclass)
             except self._exc:
-                road, pos, lane = (k.edge, k.lane_pos, k.lane) if k.edge in edges_known else ("", 0.0, 0)
-        if road.startswith(":"):
-            road = edges[0] if edges else ""
+                road, pos, lane = "", 0.0, -1
+            if road.startswith(":"):
+                road, pos, lane = (edges[0] if edges else ""), 0.0, -1
         if not road:
             return False
         if not edges or edges[0] != road:
@@ -1095,14 +1222,17 @@ class SumoTraffic(Component):
                 s.person.setSpeed(new_id, k.speed)
             arr = k.arrival_pos if (k.arrival_pos is not None and edges[-1] == (k.edges or [None])[-1]) else -1
             s.person.appendWalkingStage(new_id, edges, arr if arr is not None else -1)
-            s.person.moveToXY(new_id, edges[0], k.x, k.y, k.angle, keepRoute=2)
+            if not same:
+                s.person.moveToXY(new_id, edges[0], k.x, k.y, k.angle, keepRoute=2,
+                                  matchThreshold=EGO_MATCH_RADIUS_M)
         else:
             rid = f"cosim_keep_{new_id}"
             s.route.add(rid, edges)
             s.vehicle.add(new_id, rid, typeID=k.type_id, depart="now",
                           departLane=str(lane) if lane >= 0 else "best",
                           departPos=f"{max(0.0, pos):.2f}", departSpeed=f"{max(0.0, k.speed):.2f}")
-            s.vehicle.moveToXY(new_id, edges[0], lane, k.x, k.y, k.angle, keepRoute=2)
+            s.vehicle.moveToXY(new_id, edges[0], lane, k.x, k.y, k.angle, keepRoute=2,
+                               matchThreshold=EGO_MATCH_RADIUS_M)
         return True
 
     def _edge_set(self) -> set:
