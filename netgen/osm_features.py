@@ -221,7 +221,10 @@ def extract_features(path, frame: WorldFrame, bbox=None) -> OSMFeatures:
                     stats["areas_failed"] += 1
                     continue
                 ident = f"way/{oid}" if o.from_way() else f"relation/{oid}"
-                tags = dict(o.tags)
+                way = closed_bways.get(oid) if o.from_way() else None
+                # an area from a building way comes right after the way, with its tags: the
+                # way's copy serves (a tag copy costs more than the area's geometry)
+                tags = way[1] if way is not None else dict(o.tags)
                 for k in kinds:
                     areas[k].append((ident, g, tags))
                 if "buildings" in kinds:
