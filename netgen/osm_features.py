@@ -211,19 +211,19 @@ def extract_features(path, frame: WorldFrame, bbox=None) -> OSMFeatures:
                     lst[0].append(o.id), lst[1].append(loc.lon), lst[2].append(loc.lat)
                     lst[3].append(dict(tags))
             elif o.is_area():
-                kinds = _area_kinds(o.tags)
+                oid = o.orig_id()
+                # an area from a building way comes right after the way, with its tags: the
+                # way's copy serves (a tag copy or lookup costs more than the area's geometry)
+                way = closed_bways.get(oid) if o.from_way() else None
+                kinds = _area_kinds(o.tags if way is None else way[1])
                 if not kinds:
                     continue
-                oid = o.orig_id()
                 try:
                     g = wkb.create_multipolygon(o)
                 except RuntimeError:
                     stats["areas_failed"] += 1
                     continue
                 ident = f"way/{oid}" if o.from_way() else f"relation/{oid}"
-                way = closed_bways.get(oid) if o.from_way() else None
-                # an area from a building way comes right after the way, with its tags: the
-                # way's copy serves (a tag copy costs more than the area's geometry)
                 tags = way[1] if way is not None else dict(o.tags)
                 for k in kinds:
                     areas[k].append((ident, g, tags))
