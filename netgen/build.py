@@ -21,11 +21,11 @@ has finished, and what is left runs on both cores. Stages (timed; the report and
    quarter of its time writing, and what the builder needs comes first in the file);
 4. then three streams (:class:`_Streams`): this process meshes the roads; a forked
    process builds the carriageway and places the scenery on it (moving poles off it,
-   cutting grass along it), levels the terrain under the roads once the meshing has
-   found the levelling support (``terrain_level``; the rest of the meshing goes on here
-   meanwhile; this process levels instead if it is done with the roads first, as on a
-   city whose scenery takes long to place), puts the scenery on the final terrain and
-   writes it; a second forked
+   cutting grass along it), levels the terrain under the roads if it is done with that
+   before the meshing has found the levelling support (``terrain_level``; the rest of the
+   meshing goes on here meanwhile; else this process levels as soon as it has the support,
+   as on a city whose scenery takes long to place), puts the scenery on the final terrain
+   and writes it; a second forked
    process, started once the roads are meshed, writes road tiles. Road tiles and
    buildings (lifted onto the levelled terrain: positions and bases into the prepared
    files) are written piece by piece by whichever process is free;
@@ -349,16 +349,15 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         with streams:
             streams.fork("cosim-layers", lambda: _layers(tmp, chunks, net, splan or scenery_plan, grid,
                                                          buildings, streams))
-            with T.stage("roads"):  # the levelling support goes to cosim-layers, which levels
-                roads = build_roads(net, natural.sample, q["road_step_m"],      # (or here, serially)
-                                    on_support=lambda pts, hw: streams.level(pts, hw, T))
+            with T.stage("roads"):  # the levelling support: levelled here or in cosim-layers
+                roads = build_roads(net, natural.sample, q["road_step_m"],
+                                    on_support=lambda pts, hw: streams.level(pts, hw, T, buildings.lift))
             T.t["roads"] = round(T.t["roads"] - T.t.get("terrain_level", 0.0), 3)
             nc.running()
             with T.stage("road_tiles_plan"):
                 road_tiles = _RoadTiles(chunks, bounds, roads, TILE_M)
             streams.fork("cosim-tiles", lambda: (road_tiles.write_claimed(tmp, streams),
                                                  buildings.write_claimed(tmp, streams)))
-            streams.level_if_free(T, then=buildings.lift)      # if cosim-layers has not begun to
             progress("write", 0.0, "writing chunks")
             with T.stage("write"):
                 tiles = road_tiles.write_claimed(tmp, streams)          # what nobody has taken
@@ -573,8 +572,8 @@ class _Streams:
     Three streams: this process meshes the roads and writes the terrain; a child forked
     right after the network is read (``cosim-layers``) builds the carriageway, places the
     scenery, levels the terrain (the roads' levelling support comes through a pipe as soon
-    as the meshing has it, :meth:`level`; whichever process is free first levels,
-    :meth:`level_if_free`) and writes the scenery; a
+    as the meshing has it if cosim-layers is waiting for it, :meth:`level_if_free`; else
+    this process levels then, :meth:`level`) and writes the scenery; a
     child forked once the roads are meshed (``cosim-tiles``) writes road tiles. Forked
     children inherit everything they need and return small dicts through a pipe. The
     levelled heights go to the other processes through shared memory (allocated before
@@ -656,21 +655,27 @@ class _Streams:
         return out
 
     # -- sharing -----------------------------------------------------------------------------
-    def level(self, pts, hw, T: Timer) -> None:
-        """The roads' levelling support is known: hand it to cosim-layers, so that whichever
-        process is free first levels the terrain (:meth:`level_if_free`) while this one
-        meshes the rest of the roads; without children, level here."""
-        if self.parallel:
-            self._support_here = (pts, hw)
+    def level(self, pts, hw, T: Timer, then=None) -> None:
+        """The roads' levelling support is known. If cosim-layers is already waiting for it
+        (it claimed the levelling, :meth:`level_if_free`), send it there and go on meshing;
+        else level here, now (as without children), so that cosim-layers, busy with the
+        scenery, finds the terrain ready. `then` runs before the others are told."""
+        if self.parallel and self.next_index("level"):
             self._sup_w.send((pts, hw))
             return
+        self._level(pts, hw, T, then)
+
+    def _level(self, pts, hw, T: Timer, then) -> None:
         from .terrain import level_under_roads
 
         with T.stage("terrain_level"):
             self.lev = level_under_roads(self.grid, pts, hw)
+        if self.parallel:       # hand the heights to the others (shared memory, allocated before the forks)
+            np.frombuffer(self._z, dtype=np.float64)[:] = self.grid.z.ravel()
+            if then is not None:
+                then()
+            self._ready.set()
         self._have_terrain = True
-
-    _support_here = None
 
     def receive_support(self) -> None:
         """In cosim-layers, first thing: a thread takes the support in as soon as it is sent
@@ -683,38 +688,17 @@ class _Streams:
                                               daemon=True)
             self._receiver.start()
 
-    def level_if_free(self, T: Timer, then=None, wait: bool = False) -> None:
-        """Level the terrain here if the support is known and no other process has started
-        to (cosim-layers checks between its steps, this process once the roads are meshed;
-        with `wait`, cosim-layers first waits for the support), then hand the heights to the
-        others (shared memory, allocated before the forks); `then` runs before they are told
-        (what they must find ready too)."""
-        if not self.parallel or self._have_terrain:
+    def level_if_free(self, T: Timer, then=None) -> None:
+        """In cosim-layers, once it has nothing else to do before the terrain: claim the
+        levelling unless the roads' process already levels (it does when it has the support
+        first), wait for the support and level. Whichever process is free first levels."""
+        if not (self.parallel and self._in_child) or self._have_terrain or self.next_index("level"):
             return
-        if self._in_child:
-            if not self._support:
-                if not wait:
-                    return
-                with T.stage("terrain_support_wait"):
-                    self._receiver.join()
-                if not self._support:
-                    raise BuildError("the roads' levelling support never came")
-            pts, hw = self._support[-1]
-        elif self._support_here is None:
-            return
-        else:
-            pts, hw = self._support_here
-        if self.next_index("level"):
-            return                  # another process levels
-        from .terrain import level_under_roads
-
-        with T.stage("terrain_level"):
-            self.lev = level_under_roads(self.grid, pts, hw)
-        np.frombuffer(self._z, dtype=np.float64)[:] = self.grid.z.ravel()
-        if then is not None:
-            then()
-        self._ready.set()
-        self._have_terrain = True
+        with T.stage("terrain_support_wait"):
+            self._receiver.join()
+        if not self._support:
+            raise BuildError("the roads' levelling support never came")
+        self._level(*self._support[-1], T, then)
 
     def wait_terrain(self) -> None:
         """Block until the levelled heights are in (then self.grid has them). In this
@@ -771,10 +755,9 @@ def _layers(tmp: Path, chunks, net, splan, grid, buildings, streams: _Streams) -
             splan = splan()
     with T.stage("carriageway"):
         road = PolygonSet(carriageway_parts(net))
-    streams.level_if_free(T, then=buildings.lift)               # (in the child: the support
-    with T.stage("scenery_place"):                              # comes from the roads)
+    with T.stage("scenery_place"):
         placed = place_scenery(splan, road)
-    streams.level_if_free(T, then=buildings.lift, wait=True)
+    streams.level_if_free(T, then=buildings.lift)       # (the support comes from the roads)
     with T.stage("scenery_terrain_wait"):
         streams.wait_terrain()
     with T.stage("scenery_finish"):
