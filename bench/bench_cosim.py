@@ -87,15 +87,24 @@ def cosim(world, traffic, seconds, seed, warm, speed, parallel):
     return seconds / wall, s, f, ld
 
 
-def soak(world, minutes, seed, speed):
-    cfg = SimConfig(world_dir=str(world), traffic="dense", seed=seed, speed_mps=speed, duration_s=minutes * 60.0)
+def soak(world, minutes, seed, speed, telemetry=None):
+    cfg = SimConfig(world_dir=str(world), traffic="dense", seed=seed, speed_mps=speed, duration_s=minutes * 60.0,
+                    telemetry=telemetry)
     sim = Simulation(cfg).setup()
     proc = psutil.Process()
     try:
         t0 = time.perf_counter()
+        frames, swap_frames, build_frames = [], [], []
         for minute in range(int(minutes)):
             for _ in range(600):
+                n_swaps, n_windows = sim.streamer.swaps, len(sim.streamer.build_s)
+                f0 = time.perf_counter()
                 sim.step()
+                frames.append((time.perf_counter() - f0) * 1000.0)
+                if sim.streamer.swaps != n_swaps:
+                    swap_frames.append(round(frames[-1], 1))
+                elif len(sim.streamer.build_s) != n_windows:
+                    build_frames.append(round(frames[-1], 1))
             rss = proc.memory_info().rss / 1e6
             worker = getattr(sim.traffic, "_proc", None)
             wrss = psutil.Process(worker.pid).memory_info().rss / 1e6 if worker is not None else 0.0
@@ -109,6 +118,13 @@ def soak(world, minutes, seed, speed):
         print("  summary:", s.line())
         print("  swaps (ms):", sim.streamer.swap_ms, " window builds (s):", sim.streamer.build_s,
               " errors:", sim.streamer.errors)
+        print("  swap phases (ms):", sim.streamer.swap_phases_ms)
+        f = np.array(frames)
+        med = float(np.median(f))
+        print(f"  frames: median {med:.1f} ms, p99 {np.percentile(f, 99):.1f}, p99.9 {np.percentile(f, 99.9):.1f} "
+              f"({np.percentile(f, 99.9) / med:.2f} x median), max {f.max():.1f}; over 50 ms: {int((f > 50).sum())} "
+              f"of {len(f)}; swap frames {swap_frames} ms; frames that took in a built window {build_frames} ms; "
+              f"SUMO restarts {sim.summary.sumo_restarts}")
         print("  collisions:", sim.collision_log[:10])
     finally:
         sim.teardown()
@@ -123,6 +139,7 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--speed", type=float, default=12.0)
     ap.add_argument("--soak-minutes", type=float, default=0.0)
+    ap.add_argument("--telemetry", help="the soak's telemetry (JSONL) goes here")
     ap.add_argument("--mode", choices=["both", "serial", "pipelined"], default="both",
                     help="SUMO in-process (serial) and/or in a worker process stepping beside the physics")
     ap.add_argument("--out", default=str(REPO / "bench" / "results" / "worlds"))
@@ -137,7 +154,7 @@ def main(argv=None):
     world = Path(w["out"])
     if a.soak_minutes:
         print(f"== soak: {a.soak_minutes:.0f} min, {a.preset}, dense traffic, {a.speed} m/s")
-        soak(world, a.soak_minutes, a.seed, a.speed)
+        soak(world, a.soak_minutes, a.seed, a.speed, a.telemetry)
         return
     d = generate_demand(world / w["net_file"], world / "traffic", density=a.traffic, seed=a.seed,
                         duration=a.warm + a.seconds + 60.0)

@@ -130,6 +130,7 @@ class Simulation:
         self._pipelined = False            # SUMO in a worker process (cosim.sumo_process)
         self._restart_notes: list = []
         self._replan_pending = False       # a swap came in a junction: re-plan after it
+        self._extend_retry_t = 0.0         # no route extension before this sim time
         self._setup_done = False
 
     # ------------------------------------------------------------------------------------
@@ -399,9 +400,22 @@ class Simulation:
         return self.physics.covered(x, y, self.cfg.sensor_range_m)
 
     def _extend_route(self):
-
+        if self.t < self._extend_retry_t:
+            return
         last = self.route[-1]
-        more = self._random_route(last)
+        try:
+            more = self._random_route(last)
+        except CosimError as e:
+            # the route's last edge leads nowhere (a dead end, the network's edge): a new route
+            # from where the car is, else the car stops at the path's end; tried again in 10 s
+            log.info("could not extend the route from %s (%s): planning a new one from the car", last, e)
+            self._extend_retry_t = self.t + 1.0
+            try:
+                self.replan()
+            except CosimError as e2:
+                log.info("no new route either: %s", e2)
+                self._extend_retry_t = self.t + 10.0
+            return
         st = self.vehicle.state()
         k, s_here, _ = self.path.project(st.x, st.y, self._path_idx)
         lane = self.path.lane_of[k][0]
@@ -438,6 +452,18 @@ class Simulation:
             st = self.vehicle.state()
             ev = {"t": round(self.t, 2), "with": hit[0], "what": hit[1], "x": round(st.x, 1), "y": round(st.y, 1),
                   "speed_mps": round(st.speed, 2), "normal": [round(v, 2) for v in hit[2][7]]}
+            snap = self.last_snapshot
+            if hit[0] == "actor" and snap is not None:
+                try:
+                    j = snap.index(hit[1])
+                    dx, dy = float(snap.x[j]) - st.x, float(snap.y[j]) - st.y
+                    # where the actor is, seen from the car (0 = dead ahead, 90 = left), its speed
+                    ev["actor_bearing_deg"] = round(math.degrees(math.remainder(math.atan2(dy, dx) - st.yaw,
+                                                                                math.tau)))
+                    ev["actor_speed_mps"] = round(float(snap.speed[j]), 2)
+                    ev["actor_kind"] = str(snap.kind[j])
+                except KeyError:
+                    pass
             self.collision_log.append(ev)
             log.warning("ego collision at t=%.1f s with %s %s (%.1f m/s)", self.t, hit[0], hit[1], st.speed)
         self._in_contact = hit is not None
@@ -477,7 +503,7 @@ class Simulation:
             return
         self._replan_pending = False
         lanes = list(dict.fromkeys(ln for ln, _ in self.path.lane_of[k:]))
-        self._apply_plan(self.traffic.replan_from(lanes, st.x, st.y, st.yaw, **self._plan_kw()))
+        self._apply_plan(self.traffic.replan_from(lanes, st.x, st.y, st.yaw, route=self.route, **self._plan_kw()))
 
     # --- live controls (GUI, keyboard, scripts) -------------------------------------------
     def set_speed(self, mps: float):

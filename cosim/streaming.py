@@ -24,6 +24,7 @@ drive a whole chunk while the next window is built.
 from __future__ import annotations
 
 import logging
+import os
 import subprocess
 import time
 from pathlib import Path
@@ -31,6 +32,7 @@ from pathlib import Path
 from .workers import start_worker, worker_connection
 
 log = logging.getLogger("cosim.streaming")
+BUILD_NICENESS = 5     # window builds run at this niceness (netconvert inherits it)
 
 
 def _build_window(cfg_dict: dict, window: tuple, out: str, traffic, seed: int, duration: float, conn):
@@ -71,6 +73,7 @@ class WorldStreamer:
         self.swap_phases_ms: list = []    # per swap: {phase: ms}
         self.ready = None                 # (window, out, routes) built, SUMO loading for it
         self.plan_asked = False           # the car's route asked of the SUMO started ahead
+        self._ending: list = []           # build processes that answered, exiting
         self.build_s: list = []
         self.errors: list = []
         self.enabled = self.base_cfg is not None
@@ -87,6 +90,8 @@ class WorldStreamer:
     def step(self, x: float, y: float) -> None:
         if not self.enabled:
             return
+        if self._ending:
+            self._ending = [p for p in self._ending if p.poll() is None]
         if self.ready is not None:
             self._swap_when_ready()
             return
@@ -98,10 +103,7 @@ class WorldStreamer:
                 status, out, routes = self.conn.recv()
             except (EOFError, OSError):
                 status, out, routes = "error", f"the build process ended with exit code {self.proc.poll()}", []
-            try:
-                self.proc.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
+            self._ending.append(self.proc)     # it exits by itself: reaped later, not waited for here
             self.proc = None
             self.conn.close()
             self.conn = None
@@ -137,7 +139,8 @@ class WorldStreamer:
                 if sim.path.lane_of[k][0].startswith(":"):
                     return
                 lanes = list(dict.fromkeys(ln for ln, _ in sim.path.lane_of[k:]))
-                traffic.prepare_call("plan", "replan_from", lanes, st.x, st.y, st.yaw, **sim._plan_kw())
+                traffic.prepare_call("plan", "replan_from", lanes, st.x, st.y, st.yaw, route=sim.route,
+                                     **sim._plan_kw())
                 self.plan_asked = True
                 return
         plan, err = traffic.prepared_result("plan") if self.plan_asked else (None, None)
@@ -158,6 +161,10 @@ class WorldStreamer:
         cfg = self.sim.cfg
         out = str(self.sim.world.path / "windows" / f"{window[0]}_{window[1]}")
         self.proc, self.conn = start_worker("cosim.streaming")
+        try:        # a background job: the loop's own processes come first
+            os.setpriority(os.PRIO_PROCESS, self.proc.pid, BUILD_NICENESS)
+        except (AttributeError, OSError):
+            pass
         self.conn.send((self.base_cfg, window, out, cfg.traffic, cfg.seed, max(cfg.duration_s, 60.0) + 60.0))
         self.job_window = window
         self.job_started = time.perf_counter()
@@ -197,6 +204,12 @@ class WorldStreamer:
                  window, len(changed), len(mapping), self.swap_ms[-1], phases)
 
     def teardown(self):
+        for p in self._ending:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        self._ending = []
         if self.proc is not None:
             self.proc.terminate()           # its output is written atomically: nothing half-built stays valid
             try:

@@ -853,11 +853,14 @@ class SumoTraffic(Component):
             route, out["rng_state"] = self.random_route(edge, rng_state, min_len)
         return dict(out, route=route, path=self.lane_path(route, start_lane=lane, start_pos=pos))
 
-    def replan_from(self, lanes, x: float, y: float, yaw: float, **kw) -> dict:
+    def replan_from(self, lanes, x: float, y: float, yaw: float, route=(), **kw) -> dict:
         """``plan_route`` from the car at (x, y, yaw) on this network (after a swap): from its
         position on ``lanes[0]`` (the lane it is on in the old path) if this network has that
         lane; else from the lane under it if that runs its way; else from the start of the
-        next of ``lanes`` this network has; else from the nearest lane."""
+        next of ``lanes`` this network has; else from the nearest lane. Without a goal, the rest
+        of the old ``route`` (from the start lane's edge on) is kept where this network has all
+        of it: the car keeps its lanes (a new route may want another lane at once, a lane
+        change in a queue)."""
         self._require()
         known = self._lane_set()
         start = None
@@ -873,6 +876,17 @@ class SumoTraffic(Component):
         if start is None:
             nxt = next((ln for ln in lanes[1:] if ln in known and not ln.startswith(":")), None)
             start = (nxt, 0.0) if nxt else self.snap_lane(x, y)[:2]
+        edge = start[0].rsplit("_", 1)[0]
+        route = list(route)
+        if kw.get("goal_xy") is None and edge in route:
+            rest = route[route.index(edge):]
+            if len(rest) >= 2 and all(e in self._edge_set() for e in rest):
+                try:
+                    path = self.lane_path(rest, start_lane=start[0], start_pos=start[1])
+                    return dict(lane=start[0], pos=float(start[1]), goal=None, length=None, eta=None,
+                                rng_state=kw.get("rng_state"), route=rest, path=path)
+                except (ValueError, SimulationError):
+                    pass
         return self.plan_route(start[0], start[1], **kw)
 
     def _lane_set(self) -> set:
