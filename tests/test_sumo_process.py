@@ -40,14 +40,17 @@ def _start_lane(s):
     raise AssertionError("no long passenger lane")
 
 
-def _drive(t, lane, steps):
-    """Ego placed on `lane` and moved 1 m per step; the actors near it after every step."""
+def _drive(t, lane, steps, each_step=None):
+    """Ego placed on `lane` and moved 1 m per step (``each_step(k)`` is called before step k);
+    the actors near it after every step, and the ego's centre at each step."""
     s = t.sumo
     shape = np.array(s.lane.getShape(lane))
     d = np.r_[0.0, np.cumsum(np.hypot(*np.diff(shape, axis=0).T))]
     t.add_ego([lane.rsplit("_", 1)[0]])
-    out = []
+    out, centres = [], []
     for k in range(steps):
+        if each_step is not None:
+            each_step(k)
         pos = 10.0 + k * 1.0
         fx, fy = np.interp(pos, d, shape[:, 0]), np.interp(pos, d, shape[:, 1])
         i = min(int(np.searchsorted(d, pos)), len(d) - 1)
@@ -56,8 +59,10 @@ def _drive(t, lane, steps):
         t.set_ego_pose(float(cx), float(cy), sumo_angle_to_yaw(ang), 10.0)
         t.step()
         snap = t.actors_near(float(cx), float(cy), 120.0)
-        out.append((t.sim_time, sorted(zip(snap.ids, np.round(snap.x, 6), np.round(snap.y, 6), snap.lane))))
-    return out
+        centres.append((float(cx), float(cy)))
+        out.append((round(t.sim_time, 6), sorted(zip(snap.ids, np.round(snap.x, 6), np.round(snap.y, 6),
+                                                     snap.lane))))
+    return out, centres
 
 
 def test_worker_gives_the_same_traffic_as_in_process(net, routes):
@@ -67,7 +72,7 @@ def test_worker_gives_the_same_traffic_as_in_process(net, routes):
         lane = _start_lane(local.sumo)
         for _ in range(300):               # let traffic fill the network
             local.step()
-        want = _drive(local, lane, 60)
+        want, _ = _drive(local, lane, 60)
     finally:
         local.teardown()
     remote = TrafficProcess(net, routes, seed=4)
@@ -75,7 +80,7 @@ def test_worker_gives_the_same_traffic_as_in_process(net, routes):
     try:
         for _ in range(300):
             remote.step()
-        got = _drive(remote, lane, 60)
+        got, _ = _drive(remote, lane, 60)
         assert remote.waits < remote.calls      # steps and poses were not waited for one by one
     finally:
         remote.teardown()
@@ -148,34 +153,22 @@ def test_worker_errors_are_one_line(net, tmp_path):
 
 def _swap_run(t, lane, other_routes, prepare):
     """300 steps of traffic, 30 of the ego driving along `lane`, a swap (to the same network
-    with another demand), 30 more steps; the actors near the ego after each of those steps."""
-    s = t.sumo
+    with another demand), 30 more steps: the actors near the ego after each of those steps, the
+    swap's id mapping and the ego's centre at the swap."""
     for _ in range(300):
         t.step()
-    shape = np.array(s.lane.getShape(lane))
-    d = np.r_[0.0, np.cumsum(np.hypot(*np.diff(shape, axis=0).T))]
-    t.add_ego([lane.rsplit("_", 1)[0]])
-    out, mapping = [], None
-    for k in range(60):
+    mapping = {}
+
+    def each_step(k):
         if k == 5 and prepare:
             t.prepare_network(t.net_file, other_routes)
         if k == 30:
             if prepare:
                 assert t.prepared_ready(block=True)
-            mapping = t.swap_network(t.net_file, other_routes, keep_radius=60.0)
-        pos = 10.0 + k * 1.0
-        fx, fy = np.interp(pos, d, shape[:, 0]), np.interp(pos, d, shape[:, 1])
-        i = min(int(np.searchsorted(d, pos)), len(d) - 1)
-        ang = math.degrees(math.atan2(shape[i, 0] - shape[i - 1, 0], shape[i, 1] - shape[i - 1, 1]))
-        cx, cy = front_to_center(fx, fy, ang, 4.5)
-        t.set_ego_pose(float(cx), float(cy), sumo_angle_to_yaw(ang), 10.0)
-        t.step()
-        snap = t.actors_near(float(cx), float(cy), 120.0)
-        if k == 30:
-            _swap_run.ego_xy = (float(cx), float(cy))
-        out.append((round(t.sim_time, 6), sorted(zip(snap.ids, np.round(snap.x, 6), np.round(snap.y, 6),
-                                                     snap.lane))))
-    return out, mapping
+            mapping.update(t.swap_network(t.net_file, other_routes, keep_radius=60.0))
+
+    out, centres = _drive(t, lane, 60, each_step)
+    return out, mapping, centres[30]
 
 
 def test_swap_to_a_network_started_ahead(net, routes, tmp_path):
@@ -187,14 +180,14 @@ def test_swap_to_a_network_started_ahead(net, routes, tmp_path):
     local.setup()
     try:
         lane = _start_lane(local.sumo)
-        want, want_map = _swap_run(local, lane, other, prepare=False)
+        want, want_map, ego_xy = _swap_run(local, lane, other, prepare=False)
     finally:
         local.teardown()
     remote = TrafficProcess(net, routes, seed=4)
     remote.setup()
     try:
         first = remote._proc.pid
-        got, got_map = _swap_run(remote, lane, other, prepare=True)
+        got, got_map, _ = _swap_run(remote, lane, other, prepare=True)
         assert remote._proc.pid != first and remote.preparing is None
         assert remote.route_files == [p for p in map(type(remote.route_files[0]), other)]
         assert remote._generation == 1
@@ -209,7 +202,6 @@ def test_swap_to_a_network_started_ahead(net, routes, tmp_path):
     assert want_map and got_map == want_map        # the same actors carried over
     assert [t for t, _ in got] == [t for t, _ in want] and want[29][0] == pytest.approx(33.0)
     assert got == want                             # then the same traffic, step by step
-    ego_xy = _swap_run.ego_xy
     # the new demand's vehicles in progress around the ego made room for the carried ones: in
     # the first step after the swap, within 75 m of the ego there are only carried vehicles
     # (and any that departed in that very step); persons may overlap, they stay
