@@ -4,7 +4,9 @@ Positions, widths and connections are exactly SUMO's: each lane is a strip aroun
 centreline, each junction its SUMO polygon, each walking area and crossing its SUMO shape.
 Heights follow the ground: every edge gets one height profile along its middle lane, sampled
 from the natural terrain, and all its lanes take their height from that profile at the same
-fraction of their length, so the road is level across its width; junction, walking-area and
+fraction of their length, so the road is level across its width; the lanes of an edge "-X"
+take their heights from the profile of its opposite edge "X" (the same road's other
+direction) where they project onto it, so the two directions meet without a step; junction, walking-area and
 crossing corners take the height of the nearest lane point. Strips are resampled every
 ``step`` metres so the surface follows the terrain between SUMO's (often sparse) points.
 
@@ -235,6 +237,50 @@ def carriageway_parts(net) -> list:
     return out
 
 
+def _share_opposite_profiles(edges, lane_edge, ref_e, RP, rg, rz, C, cg, cz, max_d: float = 8.0) -> int:
+    """Heights ``cz`` (in place) of the lane points of every edge "-X" whose opposite edge "X"
+    has a profile: that profile's height where the point projects onto it (points farther
+    than ``max_d`` from it keep their own). Returns how many points changed."""
+    group_of = {int(e): g for g, e in enumerate(ref_e)}         # edge number -> profile group
+    number_of = {e.id: i for i, e in enumerate(edges)}
+    target = np.full(len(edges), -1, dtype=np.int64)
+    for i, e in enumerate(edges):
+        eid = e.id
+        if eid.startswith("-") and i in group_of:
+            j = number_of.get(eid[1:])
+            if j is not None and j in group_of:
+                target[i] = group_of[j]
+    tg = target[lane_edge[cg]]
+    sel = np.nonzero(tg >= 0)[0]
+    if not len(sel) or not len(RP):
+        return 0
+    k = min(16, len(RP))
+    d, idx = cKDTree(RP).query(C[sel], k=k, workers=-1)
+    idx = idx.reshape(len(sel), k)
+    same = rg[idx] == tg[sel][:, None]
+    has = same.any(axis=1)
+    j = idx[np.arange(len(sel)), np.argmax(same, axis=1)]
+    sel, j = sel[has], j[has]
+    n = len(RP)
+    best_z = np.full(len(sel), np.nan)
+    best_d = np.full(len(sel), np.inf)
+    for a_off in (-1, 0):           # the segments (j-1, j) and (j, j+1) of the same profile
+        a, b = j + a_off, j + a_off + 1
+        ok = (a >= 0) & (b < n)
+        a, b = np.clip(a, 0, n - 1), np.clip(b, 0, n - 1)
+        ok &= (rg[a] == rg[j]) & (rg[b] == rg[j])
+        v = RP[b] - RP[a]
+        L2 = np.maximum((v * v).sum(axis=1), 1e-12)
+        t = np.clip(((C[sel] - RP[a]) * v).sum(axis=1) / L2, 0.0, 1.0)
+        dist = np.hypot(*(RP[a] + t[:, None] * v - C[sel]).T)
+        better = ok & (dist < best_d)
+        best_d = np.where(better, dist, best_d)
+        best_z = np.where(better, rz[a] + t * (rz[b] - rz[a]), best_z)
+    use = np.isfinite(best_z) & (best_d <= max_d)
+    cz[sel[use]] = best_z[use]
+    return int(use.sum())
+
+
 def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry:
     """Meshes for every SUMO edge, junction, walking area and crossing of `net`.
 
@@ -259,6 +305,11 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     cs, ctot = _arclen(C, cg)
     key = 2.0 * lane_edge[cg] + cs / np.maximum(ctot[cg], 1e-9)
     cz = np.interp(key, rkey, rz)
+    # the two directions of one road ("X" and "-X", side by side) share one profile, the
+    # one of "X" where each lane point projects onto it: each levelled across its own width
+    # on a hillside, they met at a step of the cross slope times a lane width (0.43 m on a
+    # Monaco street, which a car's chassis stopped on)
+    _share_opposite_profiles(edges, lane_edge, ref_e, RP, rg, rz, C, cg, cz)
     width = np.array([l.width for l in lanes])
     hw = width[cg] / 2.0
     # support points for levelling and for junction heights: centrelines and lane corners
