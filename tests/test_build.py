@@ -343,8 +343,7 @@ def test_monaco_with_srtm(tmp_path):
 def _check_no_step_between_directions(out: Path, w: dict):
     """Where a road's two directions (edges X and -X) lie side by side, the asphalt is one
     surface: 0.3 m either side of the line between their inner lanes it has the same height
-    (each direction levelled on its own left a step of cross slope x lane width, and lanes
-    took heights at the same fraction of their length, not where they lie)."""
+    (each direction levelled on its own left a step of cross slope x lane width)."""
     import trimesh
 
     from cosim.world import World
