@@ -491,19 +491,31 @@ class Simulation:
             "sumo_vehicles": ts.vehicles, "sumo_persons": ts.persons,
         })
 
-    def replan(self):
-        """Plan the route again from where the car is (after a SUMO network swap), from the
-        car's own position, so the new path starts under the car (``SumoTraffic.replan_from``).
-        In a junction this waits until the car is on the lane after it (the old path's
-        geometry holds until then)."""
+    def replan_args(self) -> tuple | None:
+        """Arguments of ``SumoTraffic.replan_from`` for the car where it is: its lanes ahead on
+        the path, its pose, its route; None inside a junction (re-plan once past it: the old
+        path's geometry holds until then)."""
         st = self.vehicle.state()
         k, _, _ = self.path.project(st.x, st.y, self._path_idx)
         if self.path.lane_of[k][0].startswith(":"):
-            self._replan_pending = True
-            return
-        self._replan_pending = False
+            return None
         lanes = list(dict.fromkeys(ln for ln, _ in self.path.lane_of[k:]))
-        self._apply_plan(self.traffic.replan_from(lanes, st.x, st.y, st.yaw, route=self.route, **self._plan_kw()))
+        return (lanes, st.x, st.y, st.yaw), dict(route=self.route, **self._plan_kw())
+
+    def replan(self, plan: dict | None = None):
+        """Plan the route again from where the car is (after a SUMO network swap), from the
+        car's own position, so the new path starts under the car; inside a junction, once past
+        it. ``plan``: one already made (ahead of the swap, from where the car was a moment
+        ago) to take instead."""
+        if plan is None:
+            args = self.replan_args()
+            self._replan_pending = args is None
+            if args is None:
+                return
+            plan = self.traffic.replan_from(*args[0], **args[1])
+        self._apply_plan(plan)
+        st = self.vehicle.state()
+        self._path_idx = self.path.project(st.x, st.y, 0)[0]
 
     # --- live controls (GUI, keyboard, scripts) -------------------------------------------
     def set_speed(self, mps: float):
@@ -527,8 +539,7 @@ class Simulation:
             lane = self.traffic.sumo.lane.getLinks(lane)[0][0]
             pos = 0.0
         else:
-            pos = float(self.traffic.sumo.lane.getShape(lane) and 0.0)
-            pos = max(0.0, self._lane_pos(lane, st.x, st.y))
+            pos = max(0.0, self.traffic.lane_pos(lane, st.x, st.y))
         old_goal = self.cfg.goal
         self.cfg.goal = None if lat is None else check_latlon(lat, lon, "goal")
         self.goal_xy = None
@@ -538,9 +549,6 @@ class Simulation:
             self.cfg.goal = old_goal
             raise
         return {k: self.snap_info.get(k) for k in ("route_length_m", "eta_s", "goal_snap_m")}
-
-    def _lane_pos(self, lane, x, y) -> float:
-        return self.traffic.lane_pos(lane, x, y)
 
     def set_manual(self, control: tuple | None):
         """(throttle, brake, steer) to drive by hand, or None to give control back to the driver."""

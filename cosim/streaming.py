@@ -134,13 +134,10 @@ class WorldStreamer:
             if not traffic.prepared_ready():
                 return
             if not self.plan_asked:
-                st = sim.vehicle.state()
-                k, _, _ = sim.path.project(st.x, st.y, sim._path_idx)
-                if sim.path.lane_of[k][0].startswith(":"):
+                args = sim.replan_args()
+                if args is None:
                     return
-                lanes = list(dict.fromkeys(ln for ln, _ in sim.path.lane_of[k:]))
-                traffic.prepare_call("plan", "replan_from", lanes, st.x, st.y, st.yaw, route=sim.route,
-                                     **sim._plan_kw())
+                traffic.prepare_call("plan", "replan_from", *args[0], **args[1])
                 self.plan_asked = True
                 return
         plan, err = traffic.prepared_result("plan") if self.plan_asked else (None, None)
@@ -188,12 +185,7 @@ class WorldStreamer:
         sim._routes = list(routes)          # what SUMO restarts on, should its worker crash
         lap("sumo")
         sim.mirror.rekey(mapping)
-        if plan is not None:                # planned ahead, from where the car was a moment ago
-            sim._apply_plan(plan)
-            st = sim.vehicle.state()
-            sim._path_idx = sim.path.project(st.x, st.y, 0)[0]
-        else:
-            sim.replan()
+        sim.replan(plan)
         lap("replan")
         self.center = window
         self.built.add(window)

@@ -487,12 +487,15 @@ class TrafficProcess(Component):
             nxt["error"] = SimulationError("SUMO's worker process for the next network ended at once")
             return
         # load, and swap_adopt's first second (SumoTraffic.warm_up), taken ahead
-        self._prepared_call(None, "setup")
-        self._prepared_call(None, "warm_up")
+        self.prepare_call(None, "setup")
+        self.prepare_call(None, "warm_up")
 
-    def _prepared_call(self, tag, name, *args, **kwargs) -> None:
-        """Send a call to the prepared SUMO; with a tag its answer (or error) is kept under it
-        (``prepared_result``), untagged an error makes the prepared SUMO unusable."""
+    def prepare_call(self, tag: str | None, name: str, *args, **kwargs) -> None:
+        """Ask the SUMO started by ``prepare_network`` for ``name(*args, **kwargs)`` (a method
+        of SumoTraffic) in the background, before the swap: the route from where the car will
+        be, for instance. ``prepared_ready()`` turns True when it is answered; with a tag the
+        answer (or error) is ``prepared_result(tag)``, untagged an error makes the prepared SUMO
+        unusable."""
         nxt = self._next
         if nxt is None or nxt["error"] is not None:
             return
@@ -502,13 +505,6 @@ class TrafficProcess(Component):
         except (EOFError, OSError, BrokenPipeError):
             nxt["error"] = SimulationError("SUMO's worker process for the next network ended unexpectedly")
             nxt["tags"] = []
-
-    def prepare_call(self, tag: str, name: str, *args, **kwargs) -> None:
-        """Ask the SUMO started by ``prepare_network`` for ``name(*args, **kwargs)`` (a method
-        of SumoTraffic) in the background, before the swap: the route from where the car will
-        be, for instance. ``prepared_ready()`` turns True when it is answered; the answer is
-        ``prepared_result(tag)``."""
-        self._prepared_call(tag, name, *args, **kwargs)
 
     def prepared_result(self, tag: str):
         """(value, error) of a tagged ``prepare_call``; (None, None) if there is none."""

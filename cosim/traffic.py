@@ -207,6 +207,11 @@ class _Kept:
     lane_length: float = -1.0    # of lane_id: the same lane in the next network has the same length
 
 
+def _plan(lane: str, pos: float, rng_state) -> dict:
+    """A route plan (``SumoTraffic.plan_route``) before its route, path and goal are known."""
+    return dict(lane=lane, pos=float(pos), goal=None, length=None, eta=None, rng_state=rng_state)
+
+
 # --- the component --------------------------------------------------------------------------
 class SumoTraffic(Component):
     """One SUMO run: setup() / step() / teardown(), ego injection, actors, traffic lights."""
@@ -835,7 +840,7 @@ class SumoTraffic(Component):
         goal is too far from a road or cannot be reached."""
         s = self._require()
         edge = lane.rsplit("_", 1)[0]
-        out = dict(lane=lane, pos=float(pos), goal=None, length=None, eta=None, rng_state=rng_state)
+        out = _plan(lane, pos, rng_state)
         if goal_xy is not None:
             glane, gpos, gpx, gpy, _, gdist = self.snap_lane(float(goal_xy[0]), float(goal_xy[1]))
             out["goal"] = dict(lane=glane, pos=gpos, x=gpx, y=gpy, dist=gdist)
@@ -862,7 +867,7 @@ class SumoTraffic(Component):
         of it: the car keeps its lanes (a new route may want another lane at once, a lane
         change in a queue)."""
         self._require()
-        known = self._lane_set()
+        known = self._id_set("lane")
         start = None
         if lanes and lanes[0] in known:
             start = (lanes[0], self.lane_pos(lanes[0], x, y))
@@ -882,18 +887,11 @@ class SumoTraffic(Component):
             rest = route[route.index(edge):]
             if len(rest) >= 2 and all(e in self._edge_set() for e in rest):
                 try:
-                    path = self.lane_path(rest, start_lane=start[0], start_pos=start[1])
-                    return dict(lane=start[0], pos=float(start[1]), goal=None, length=None, eta=None,
-                                rng_state=kw.get("rng_state"), route=rest, path=path)
+                    return dict(_plan(start[0], start[1], kw.get("rng_state")), route=rest,
+                                path=self.lane_path(rest, start_lane=start[0], start_pos=start[1]))
                 except (ValueError, SimulationError):
                     pass
         return self.plan_route(start[0], start[1], **kw)
-
-    def _lane_set(self) -> set:
-        if getattr(self, "_lanes_cache_net", None) != str(self.net_file):
-            self._lanes_cache = set(self._sim.lane.getIDList())
-            self._lanes_cache_net = str(self.net_file)
-        return self._lanes_cache
 
     def lane_path(self, edges: Sequence[str], start_lane: str | None = None, start_pos: float = 0.0):
         """``cosim.driving.LanePath`` along ``edges`` on this SUMO's network. Built where SUMO
@@ -1249,8 +1247,13 @@ class SumoTraffic(Component):
                                matchThreshold=EGO_MATCH_RADIUS_M)
         return True
 
+    def _id_set(self, domain: str) -> set:
+        """The ids of this network's edges or lanes (``domain``), read once per network."""
+        cache = self.__dict__.setdefault("_id_sets", {})
+        key = (domain, str(self.net_file))
+        if key not in cache:
+            cache[key] = set(getattr(self._sim, domain).getIDList())
+        return cache[key]
+
     def _edge_set(self) -> set:
-        if getattr(self, "_edges_cache_gen", None) != str(self.net_file):
-            self._edges_cache = set(self._sim.edge.getIDList())
-            self._edges_cache_gen = str(self.net_file)
-        return self._edges_cache
+        return self._id_set("edge")

@@ -16,7 +16,7 @@ import pytest
 from cosim.config import SimConfig
 from cosim.sim import Simulation
 from cosim.sumo_process import live_workers
-from cosim.traffic import EGO_ID, front_to_center, sumo_angle_to_yaw
+from cosim.traffic import front_to_center, sumo_angle_to_yaw
 from netgen.build import build_world
 from netgen.config import WorldConfig
 
@@ -29,6 +29,13 @@ def motorway_world(tmp_path_factory):
     out = tmp_path_factory.mktemp("sim") / "kouvola-motorway"
     build_world(WorldConfig(preset="kouvola-motorway", chunks=1, out=str(out), cache_dir=str(out.parent / "cache")))
     return out
+
+
+def _ego_gap(sim) -> float:
+    """How far the ego in SUMO is from the physics car (inf when SUMO has no ego)."""
+    eg = sim.traffic.ego_state()
+    st = sim.vehicle.state()
+    return math.inf if eg is None else math.hypot(eg["x"] - st.x, eg["y"] - st.y)
 
 
 @pytest.mark.parametrize("parallel", [True, False], ids=["sumo-worker-process", "sumo-in-process"])
@@ -78,14 +85,12 @@ def test_drive_across_a_chunk_border_with_traffic(motorway_world, tmp_path, para
         sim.mirror.update = update_then_check
         for _ in range(int(70 / 0.1)):
             sim.step()
-        # the ego is in SUMO where physics has it
-        eg = sim.traffic.ego_state()
-        st = sim.vehicle.state()
+        gap = _ego_gap(sim)
         summary = sim.finish()
     finally:
         sim.teardown()
     assert mirror_checked > 20
-    assert eg is not None and math.hypot(eg["x"] - st.x, eg["y"] - st.y) < 3.0
+    assert gap < 3.0                              # the ego is in SUMO where physics has it
     assert summary.distance_m > 900, summary.line()
     assert summary.chunks_visited >= 2, summary.line()
     assert summary.tiles_unloaded > 0 and summary.tiles_loaded > summary.tiles_unloaded
@@ -189,13 +194,12 @@ def test_sumo_worker_crash_is_survived(motorway_world):
         os.kill(old, signal.SIGKILL)
         for _ in range(150):
             sim.step()
-        eg = sim.traffic.ego_state()
-        st = sim.vehicle.state()
+        gap = _ego_gap(sim)
         summary = sim.finish()
     finally:
         sim.teardown()
     assert summary.sumo_restarts == 1 and "started again" in summary.notes[-1]
     assert "restarted after a crash 1 time(s)" in summary.line()
     assert summary.distance_m > 300 and summary.ego_collisions == 0
-    assert eg is not None and math.hypot(eg["x"] - st.x, eg["y"] - st.y) < 3.0   # SUMO has the ego again
+    assert gap < 3.0                              # SUMO has the ego again
     assert summary.max_vehicles > 0
