@@ -299,7 +299,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         from .buildings import plan_buildings           # (imported once netconvert runs)
         from .roads import _road_lanes as road_lanes, build_roads
         from .scenery import plan_scenery
-        from .terrain import TerrainGrid, level_under_roads, sample_grid
+        from .terrain import TerrainGrid, sample_grid
 
         progress("terrain", 0.0, "sampling terrain")
         with T.stage("terrain_sample"):

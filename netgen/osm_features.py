@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import osmium
 import shapely
-from shapely.geometry import LineString, MultiPolygon, Polygon, box
+from shapely.geometry import MultiPolygon, Polygon, box
 
 from .errors import DataError
 from .frame import WorldFrame

@@ -6,8 +6,10 @@ Heights follow the ground: every edge gets one height profile along its middle l
 from the natural terrain, and all its lanes take their height from that profile at the same
 fraction of their length, so the road is level across its width; the lanes of an edge "-X"
 take theirs from the profile of its opposite edge "X" (the same road's other direction) where
-they project onto it, so the two directions meet without a step; junction, walking-area and
-crossing corners take the height of the nearest lane point. Strips are resampled every
+they project onto it, so the two directions meet without a step; junction and walking-area
+corners take the height of the nearest lane point. Crossings are paint (zebra stripes in the
+marking class), each stripe corner on the highest surface (lane, junction, walking area)
+under it. Strips are resampled every
 ``step`` metres so the surface follows the terrain between SUMO's (often sparse) points.
 
 Everything is computed on concatenated arrays of all lanes at once (a city has ~10^4 lanes;
@@ -16,9 +18,9 @@ per-lane Python would dominate the build).
 The carriageway (where vehicles drive: vehicle lanes and junctions) is given as overlapping
 polygons, :func:`carriageway_parts`, made on demand from the network alone.
 
-Mesh classes: ``asphalt`` (vehicle lanes, junctions, crossings), ``sidewalk`` (pedestrian-only
+Mesh classes: ``asphalt`` (vehicle lanes, junctions), ``sidewalk`` (pedestrian-only
 lanes and walking areas, 2 cm higher), ``rail`` (train-only tracks) and ``marking`` (lane lines and zebra stripes, visual
-only, 1.5 cm above the asphalt). Each piece keeps its SUMO id and the OSM way ids.
+only, 1.5 cm above the surface). Each piece keeps its SUMO id and the OSM way ids.
 """
 from __future__ import annotations
 
@@ -172,6 +174,38 @@ def _strips(C, gid, z, halfw, lift=0.0, seg_mask=None):
     return v, f[order], fg[order]
 
 
+def _top_surface_z(xy, parts):
+    """Height of the highest triangle of `parts` (MeshParts) over each point of `xy` (n, 2);
+    NaN where there is none."""
+    top = np.full(len(xy), -np.inf)
+    parts = [p for p in parts if len(p.faces)]
+    if not parts or not len(xy):
+        return np.full(len(xy), np.nan)
+    offs = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
+    V = np.vstack([p.vertices for p in parts])
+    T = V[np.vstack([p.faces + o for p, o in zip(parts, offs)])]        # (n, 3, 3)
+    # only the triangles that can hold a point: centroid within its own reach of one
+    cen = T[:, :, :2].mean(axis=1)
+    reach = np.sqrt(((T[:, :, :2] - cen[:, None, :]) ** 2).sum(axis=2).max(axis=1))
+    d, _ = cKDTree(xy).query(cen, k=1, workers=-1)
+    T = T[d <= reach + 1e-6]
+    a, b, c = T[:, 0], T[:, 1], T[:, 2]
+    det = (b[:, 1] - c[:, 1]) * (a[:, 0] - c[:, 0]) + (c[:, 0] - b[:, 0]) * (a[:, 1] - c[:, 1])
+    ok = np.abs(det) > 1e-9
+    T, det = T[ok], det[ok]
+    if not len(T):
+        return np.full(len(xy), np.nan)
+    pi, ti = shapely.STRtree(shapely.polygons(T[:, :, :2])).query(shapely.points(xy), predicate="intersects")
+    a, b, c = T[ti, 0], T[ti, 1], T[ti, 2]
+    x, y = xy[pi, 0], xy[pi, 1]
+    l1 = ((b[:, 1] - c[:, 1]) * (x - c[:, 0]) + (c[:, 0] - b[:, 0]) * (y - c[:, 1])) / det[ti]
+    l2 = ((c[:, 1] - a[:, 1]) * (x - c[:, 0]) + (a[:, 0] - c[:, 0]) * (y - c[:, 1])) / det[ti]
+    z = l1 * a[:, 2] + l2 * b[:, 2] + (1.0 - l1 - l2) * c[:, 2]
+    np.maximum.at(top, pi, z)
+    top[~np.isfinite(top)] = np.nan
+    return top
+
+
 def _part(kind, v, f, fg, n_groups, ids, elements, osm, centroids):
     counts = np.bincount(fg, minlength=n_groups) if len(fg) else np.zeros(n_groups, dtype=np.int64)
     fstart = np.concatenate([[0], np.cumsum(counts)])
@@ -322,8 +356,33 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     tree = cKDTree(np.vstack(sup)[:, :2])
     supz = np.concatenate([cz, cz, cz])
 
+    sup_edge = np.tile(lane_edge[cg], 3)
+
     def zfun(xy):
         _, i = tree.query(xy, k=1, workers=-1)     # threads: a core may be idle
+        return supz[i]
+
+    # a junction's corners take their heights from the lanes that meet there: the nearest lane
+    # of any road took one from a road passing by (a tunnel under a Monaco junction, a parallel
+    # street up the hill), and the junction, between corners metres apart in height, folded
+    node_of = {}
+    for ei, e in enumerate(edges):
+        for n in (e.from_node, e.to_node):
+            node_of.setdefault(n, []).append(ei)
+    n_edges = len(edges)
+
+    def zfun_at(xy, junction_ids):
+        """Heights for points of the junctions `junction_ids` (one per point)."""
+        k = min(16, len(supz))
+        _, nb = tree.query(xy, k=k, workers=-1)
+        nb = nb.reshape(len(xy), k)
+        jn = {j: n for n, j in enumerate(dict.fromkeys(junction_ids))}
+        jidx = np.array([jn[j] for j in junction_ids], dtype=np.int64)
+        pairs = np.array([n * n_edges + ei for j, n in jn.items() for ei in node_of.get(j, ())],
+                         dtype=np.int64)
+        own = np.isin(jidx[:, None] * n_edges + sup_edge[nb], pairs)
+        first = np.argmax(own, axis=1)
+        i = np.where(own.any(axis=1), nb[np.arange(len(xy)), first], nb[:, 0])
         return supz[i]
 
     # 3. junctions, walking areas: polygons (earcut) with heights from the lanes; the
@@ -366,7 +425,10 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
         F = np.concatenate(tris).reshape(-1, 3).astype(np.int64) + np.repeat(np.cumsum(nv) - nv, nt)[:, None]
         FG = np.repeat(np.arange(len(keep)), nt)
         V2 = np.vstack(rings)
-        Z = zfun(V2) + (SIDEWALK_LIFT if kind == "sidewalk" else 0.0)
+        if kind == "asphalt":
+            Z = zfun_at(V2, [pid[k] for k, r in zip(keep, rings) for _ in range(len(r))])
+        else:
+            Z = zfun(V2) + SIDEWALK_LIFT
         V = np.column_stack([V2, Z])
         PP, pg = _concat([polys[k][:, :2] for k in keep])     # as given (closing point too)
         cnt = np.bincount(pg, minlength=len(keep))
@@ -421,23 +483,24 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     if walk_part is not None:
         parts["sidewalk"].append(walk_part)
     if crossings:
+        # zebra crossings are paint, not a surface: the car drives on the junction and lane
+        # ends under them (a crossing strip of its own, level along the road, stood 0.3 m proud
+        # of a sloping Monaco junction and stopped the car). Stripes of 0.5 m every metre along
+        # the walking direction, 90 % of the width, each corner on the highest surface under it
         XP, xg = _concat([e.lanes[0].shape for e in crossings])
-        XC, xcg = resample_many(XP, xg, step)
-        xz = zfun(XC) + 0.005
         xw = np.array([e.lanes[0].width for e in crossings])
-        v, f, fg = _strips(XC, xcg, xz, xw[xcg] / 2.0)
-        xcent = np.zeros((len(crossings), 2))
-        np.add.at(xcent, xcg, XC)
-        xcent /= np.bincount(xcg, minlength=len(crossings))[:, None]
-        parts["asphalt"].append(_part("asphalt", v, f, fg, len(crossings), [e.id for e in crossings],
-                                      ["crossing"] * len(crossings), [()] * len(crossings), xcent))
-        # zebra: 0.5 m stripes every metre along the walking direction, 90 % of the width
-        xs, xtot = _arclen(XC, xcg)
         Z2, z2g = resample_many(XP, xg, 0.5)
         zs, _ = _arclen(Z2, z2g)
-        zz = zfun(Z2) + 0.005
         seg_on = (np.floor((zs[:-1] + zs[1:]) / 2.0 / 0.5) % 2 == 0) & (zs[1:] > zs[:-1])
-        v, f, fg = _strips(Z2, z2g, zz, 0.45 * xw[z2g], MARKING_LIFT, seg_mask=seg_on)
+        v, f, fg = _strips(Z2, z2g, np.zeros(len(Z2)), 0.45 * xw[z2g], seg_mask=seg_on)
+        top = _top_surface_z(v[:, :2], parts["asphalt"] + parts["sidewalk"])
+        miss = ~np.isfinite(top)
+        if miss.any():
+            top[miss] = zfun(v[miss, :2])
+        v[:, 2] = top + MARKING_LIFT
+        xcent = np.zeros((len(crossings), 2))
+        np.add.at(xcent, z2g, Z2)
+        xcent /= np.bincount(z2g, minlength=len(crossings))[:, None]
         parts["marking"].append(_part("marking", v, f, fg, len(crossings), [e.id for e in crossings],
                                       ["zebra"] * len(crossings), [()] * len(crossings), xcent))
     geo.parts = {k: v for k, v in parts.items() if v}

@@ -238,7 +238,6 @@ def test_build_leaves_the_garbage_collector_as_it_was(helsinki):
 
 def test_rebuild_reuses_the_world(helsinki):
     out, w, cache = helsinki
-    t0 = time.perf_counter()
     again = build_world(WorldConfig(preset="helsinki", chunks=1, out=str(out), cache_dir=str(cache)))
     assert again.get("reused") is True
     assert again["build_key"] == w["build_key"]
@@ -338,14 +337,73 @@ def test_monaco_with_srtm(tmp_path):
     _check_terrain_against_dem(out, w, dem, np.random.default_rng(1))
     assert _check_buildings_on_ground(out, w) > 100
     _check_no_step_between_directions(out, w)
+    _check_crossings_on_the_road(out, w)
+
+
+def _surface_heights(world, xy: np.ndarray, layers=("asphalt",)) -> list:
+    """Every surface of `layers` (sorted, top last) over each point of `xy`, by ray casts down
+    through the world's tiles."""
+    import trimesh
+
+    meshes = []
+    for key in {k for p in xy for k in world.tiles_within(p[0], p[1], 5.0)}:
+        for layer in layers:
+            f = world.tile_files(key).get(layer)
+            if f is not None:
+                meshes.append(trimesh.load(f, force="mesh"))
+    mesh = trimesh.util.concatenate(meshes)
+    origins = np.column_stack([xy, np.full(len(xy), 5000.0)])
+    loc, ray, _ = mesh.ray.intersects_location(origins, np.tile([0.0, 0.0, -1.0], (len(xy), 1)))
+    out = [[] for _ in xy]
+    for z, r in zip(loc[:, 2], ray):
+        out[r].append(z)
+    return [sorted(h) for h in out]
+
+
+def _check_crossings_on_the_road(out: Path, w: dict):
+    """Zebra crossings are paint on the junction and lanes under them, not a surface of their
+    own: a crossing strip level along the road stood 0.3 m proud of a sloping Monaco junction,
+    and the car stopped at its edge. So no crossing is in a colliding class, and each stripe
+    corner lies 1.5 cm above the highest road surface under it."""
+    import trimesh
+
+    from cosim.world import World
+
+    world = World(out)
+    idx = {}
+    for c in w["chunks"]:
+        for p in json.loads((out / c["files"]["roads_index"]).read_text())["pieces"]:
+            idx[p["id"]] = dict(p, key=(c["i"], c["j"], *map(int, p["tile"].split("_"))))
+    net = read_net(out / w["net_file"])
+    crossings = [e.id for e in net.edges.values() if e.function == "crossing" and e.id in idx]
+    assert len(crossings) > 100, "Monaco has many crossings"
+    assert {idx[c]["class"] for c in crossings} == {"marking"}
+    assert {idx[c]["element"] for c in crossings} == {"zebra"}
+    corners = []
+    for key in {idx[c]["key"] for c in crossings[:60]}:
+        f = world.tile_files(key).get("marking")
+        scene = trimesh.load(f, group_material=False, split_groups=True, process=False)
+        for name, g in scene.geometry.items():
+            if name.startswith("zebra/"):
+                v = g.vertices[g.faces.ravel()]
+                cen = g.vertices[g.faces].mean(axis=1).repeat(3, axis=0)
+                d = cen - v
+                corners.append(v + 0.002 * d / np.linalg.norm(d, axis=1)[:, None])   # 2 mm inside
+    corners = np.vstack(corners)
+    assert len(corners) > 1000
+    hs = _surface_heights(world, corners[:, :2], ("asphalt", "sidewalk"))
+    lift = np.array([z - h[-1] for (z, h) in zip(corners[:, 2], hs) if h])
+    assert len(lift) > 0.95 * len(corners)
+    # (where a corner sits on the edge between two road pieces of different heights, the
+    # highest one that ends there holds it: about 2 % of corners)
+    assert np.percentile(np.abs(lift - 0.015), 95) < 0.003, np.percentile(lift, [1, 50, 95, 99])
+    assert (lift > 0.005).mean() > 0.99, np.percentile(lift, [1, 50, 95, 99])
 
 
 def _check_no_step_between_directions(out: Path, w: dict):
     """Where a road's two directions (edges X and -X) lie side by side, the asphalt is one
     surface: 0.3 m either side of the line between their inner lanes it has the same height
     (each direction levelled on its own left a step of cross slope x lane width)."""
-    import trimesh
-
     from cosim.world import World
 
     world = World(out)
@@ -367,22 +425,8 @@ def _check_no_step_between_directions(out: Path, w: dict):
             nrm.append((q - p) / np.hypot(*(q - p)))
     assert len(pts) > 50, "Monaco has many two-way streets"
     pts, nrm = np.array(pts), np.array(nrm)
-    meshes = []
-    for key in {k for p in pts for k in world.tiles_within(p[0], p[1], 5.0)}:
-        f = world.tile_files(key).get("asphalt")
-        if f is not None:
-            meshes.append(trimesh.load(f, force="mesh"))
-    mesh = trimesh.util.concatenate(meshes)
-
-    def heights(xy):            # every surface under each point (bridges pass over some)
-        origins = np.column_stack([xy, np.full(len(xy), 5000.0)])
-        loc, ray, _ = mesh.ray.intersects_location(origins, np.tile([0.0, 0.0, -1.0], (len(xy), 1)))
-        out = [[] for _ in xy]
-        for z, r in zip(loc[:, 2], ray):
-            out[r].append(z)
-        return out
-
-    za, zb = heights(pts - 0.3 * nrm), heights(pts + 0.3 * nrm)
+    # every surface under each point (bridges pass over some)
+    za, zb = _surface_heights(world, pts - 0.3 * nrm), _surface_heights(world, pts + 0.3 * nrm)
     step = np.array([min(abs(x - y) for x in a for y in b) for a, b in zip(za, zb) if a and b])
     assert len(step) > 50
     # (each direction levelled on its own: median 0.18 m, 90th percentile 0.95 m, max 2.1 m;

@@ -10,7 +10,7 @@ import pytest
 
 from netgen.build import build_world
 from netgen.config import WorldConfig
-from tests.conftest import SHARED_DATA, shared_file
+from tests.conftest import shared_file
 from tests.fake_services import FakeServices, closed_port_url
 
 CLI = [sys.executable, "-m", "cosim"]
