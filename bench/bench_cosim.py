@@ -95,6 +95,7 @@ def soak(world, minutes, seed, speed, telemetry=None):
     try:
         t0 = time.perf_counter()
         frames, swap_frames, build_frames = [], [], []
+        swap_tail = 0           # a swap spans three frames (see Simulation.swap_traffic)
         for minute in range(int(minutes)):
             for _ in range(600):
                 n_swaps, n_windows = sim.streamer.swaps, len(sim.streamer.build_s)
@@ -102,7 +103,11 @@ def soak(world, minutes, seed, speed, telemetry=None):
                 sim.step()
                 frames.append((time.perf_counter() - f0) * 1000.0)
                 if sim.streamer.swaps != n_swaps:
-                    swap_frames.append(round(frames[-1], 1))
+                    swap_frames.append([round(frames[-1], 1)])
+                    swap_tail = 2
+                elif swap_tail:
+                    swap_frames[-1].append(round(frames[-1], 1))
+                    swap_tail -= 1
                 elif len(sim.streamer.build_s) != n_windows:
                     build_frames.append(round(frames[-1], 1))
             rss = proc.memory_info().rss / 1e6
@@ -123,7 +128,7 @@ def soak(world, minutes, seed, speed, telemetry=None):
         med = float(np.median(f))
         print(f"  frames: median {med:.1f} ms, p99 {np.percentile(f, 99):.1f}, p99.9 {np.percentile(f, 99.9):.1f} "
               f"({np.percentile(f, 99.9) / med:.2f} x median), max {f.max():.1f}; over 50 ms: {int((f > 50).sum())} "
-              f"of {len(f)}; swap frames {swap_frames} ms; frames that took in a built window {build_frames} ms; "
+              f"of {len(f)}; swap frames (the frame it starts in and the two after) {swap_frames} ms; frames that took in a built window {build_frames} ms; "
               f"SUMO restarts {sim.summary.sumo_restarts}")
         print("  collisions:", sim.collision_log[:10])
     finally:

@@ -23,6 +23,7 @@ import logging
 import math
 import random
 import time
+from pathlib import Path
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -130,6 +131,10 @@ class Simulation:
         self._pipelined = False            # SUMO in a worker process (cosim.sumo_process)
         self._restart_notes: list = []
         self._replan_pending = False       # a swap came in a junction: re-plan after it
+        # a SUMO network swap in two frames (SUMO in its worker): (net, routes, plan, phases)
+        # to start at the next frame's start, then the plan to take once SUMO has adopted
+        self._swap_next = None
+        self._swap_adopting = None
         self._extend_retry_t = 0.0         # no route extension before this sim time
         self._setup_done = False
 
@@ -311,6 +316,11 @@ class Simulation:
 
     def _restart_traffic(self):
         st = self.vehicle.state()
+        # a swap under way: SUMO starts again on the new network, and the route is planned there
+        swap = self._swap_next or self._swap_adopting
+        if self._swap_next is not None:
+            self._routes = self._swap_next[1]
+        self._swap_next = self._swap_adopting = None
         try:
             self.traffic.teardown()
         except Exception:
@@ -323,6 +333,11 @@ class Simulation:
 
         self.mirror.update(ActorsSnapshot.empty(self.t))      # SUMO's actors are all new ones
         self.summary.sumo_restarts += 1
+        if swap is not None:
+            try:
+                self.replan()
+            except CosimError as e:
+                log.info("no route on the new network after SUMO's restart: %s", e)
         self._restart_notes.append(f"SUMO's worker process crashed at t={self.t:.1f} s and was started again")
 
     def _step(self) -> EgoState:
@@ -339,6 +354,11 @@ class Simulation:
             # not done yet); then SUMO's next step starts in its worker process and runs
             # while the driver (on this state: lagged_reads) and the physics below run
             snap = self.traffic.actors_near(st.x, st.y, cfg.mirror_radius_m)
+            if self._swap_adopting is not None:
+                self._swap_note("adopt_wait", t0)
+                self._swap_adopted()
+            if self._swap_next is not None:
+                self._swap_start()
             self.traffic.set_ego_pose(st.x, st.y, st.yaw, max(0.0, st.speed))
             self.traffic.step()
         with self.traffic.lagged_reads() if pipelined else contextlib.nullcontext():
@@ -362,14 +382,15 @@ class Simulation:
         self.vehicle.apply_control(throttle, brake, steer)
         self.vehicle.step(self.substeps)
         self._check_collisions()
-        # route bookkeeping
-        if self.goal_xy is None and self.path.length - s_here < 120.0:
+        # route bookkeeping (not while SUMO swaps networks: the route is planned anew then)
+        swapping = self._swap_next is not None or self._swap_adopting is not None
+        if self.goal_xy is None and self.path.length - s_here < 120.0 and not swapping:
             self._extend_route()
         if self.goal_xy is not None and math.hypot(st.x - self.goal_xy[0], st.y - self.goal_xy[1]) < 10.0 \
                 and abs(st.speed) < 1.0:
             self.summary.arrived = True
         # streaming
-        if self._replan_pending and not self.path.lane_of[self._path_idx][0].startswith(":"):
+        if self._replan_pending and not swapping and not self.path.lane_of[self._path_idx][0].startswith(":"):
             self.replan()                   # after a swap in a junction: now on the lane after it
         self.physics.update(st.x, st.y, self.keep_radius)
         self.streamer.step(st.x, st.y)
@@ -490,6 +511,52 @@ class Simulation:
             "mode": "manual" if self.manual is not None else "auto",
             "sumo_vehicles": ts.vehicles, "sumo_persons": ts.persons,
         })
+
+    # --- SUMO network swaps ---------------------------------------------------------------
+    def swap_traffic(self, net_file, routes, plan: dict | None = None) -> dict:
+        """Move SUMO to another network (a new window), carrying the actors around the car.
+
+        In-process, at once. With SUMO in its worker process and started ahead on the new
+        network, in the next two frames without a wait: the next frame captures the actors
+        (a few ms) and sends them to the new SUMO, which inserts them while that frame's
+        physics runs on the old network's last state; the frame after takes the new ids and
+        the route (``plan``, made ahead; else planned then). Returns the times taken now (ms)."""
+        if self._pipelined and getattr(self.traffic, "preparing", None) is not None:
+            self._swap_next = (net_file, list(routes), plan)
+            return {}
+        t0 = time.perf_counter()
+        mapping = self.traffic.swap_network(net_file, routes, keep_radius=self.cfg.mirror_radius_m)
+        self._routes = list(routes)          # what SUMO restarts on, should its worker crash
+        t1 = time.perf_counter()
+        self.mirror.rekey(mapping)
+        self.replan(plan)
+        log.info("SUMO swapped to %s, %d actors kept", Path(net_file).parent.parent.name, len(mapping))
+        return {"sumo": round((t1 - t0) * 1000.0, 1), "replan": round((time.perf_counter() - t1) * 1000.0, 1)}
+
+    def _swap_start(self):
+        t0 = time.perf_counter()
+        net_file, routes, plan = self._swap_next
+        self._swap_next = None
+        self.traffic.swap_begin(net_file, routes, keep_radius=self.cfg.mirror_radius_m)
+        self._routes = routes
+        self._swap_adopting = (plan, net_file)
+        self._swap_note("capture", t0)
+
+    def _swap_adopted(self):
+        t0 = time.perf_counter()
+        (plan, net_file), self._swap_adopting = self._swap_adopting, None
+        mapping = self.traffic.swap_end()
+        self.mirror.rekey(mapping)
+        self.replan(plan)
+        self._swap_note("replan", t0)
+        log.info("SUMO swapped to %s, %d actors kept", Path(net_file).parent.parent.name, len(mapping))
+
+    def _swap_note(self, phase: str, t0: float):
+        """The time a swap took in this frame, in its phase (ms, the streamer's record)."""
+        phases = self.streamer.swap_phases_ms if self.streamer is not None else None
+        if phases:
+            phases[-1][phase] = round((time.perf_counter() - t0) * 1000.0, 1)
+            self.streamer.swap_ms[-1] = round(sum(phases[-1].values()), 1)
 
     def replan_args(self) -> tuple | None:
         """Arguments of ``SumoTraffic.replan_from`` for the car where it is: its lanes ahead on

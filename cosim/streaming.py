@@ -181,19 +181,14 @@ class WorldStreamer:
         changed = sim.world.add_window(out)
         sim.physics.refresh(changed)
         lap("world")
-        mapping = sim.traffic.swap_network(sim.world.net_file, routes, keep_radius=sim.cfg.mirror_radius_m)
-        sim._routes = list(routes)          # what SUMO restarts on, should its worker crash
-        lap("sumo")
-        sim.mirror.rekey(mapping)
-        sim.replan(plan)
-        lap("replan")
+        phases.update(sim.swap_traffic(sim.world.net_file, routes, plan))
         self.center = window
         self.built.add(window)
         self.swaps += 1
         self.swap_phases_ms.append(phases)
         self.swap_ms.append(round(sum(phases.values()), 1))
-        log.info("swapped to the window around chunk %s (%d chunks new, %d actors kept, %.0f ms: %s)",
-                 window, len(changed), len(mapping), self.swap_ms[-1], phases)
+        log.info("swapped to the window around chunk %s (%d chunks new, %.0f ms in this frame: %s)",
+                 window, len(changed), self.swap_ms[-1], phases)
 
     def teardown(self):
         for p in self._ending:

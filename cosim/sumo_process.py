@@ -24,6 +24,7 @@ Log records of the worker (teleports, collisions, warnings) are re-emitted in th
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import inspect
 import logging
@@ -293,6 +294,8 @@ class TrafficProcess(Component):
         self._proc = None
         self._conn = None
         self._pending = 0
+        self._tags: collections.deque = collections.deque()   # one per request in flight
+        self._adopted = None     # swap_begin's answer (old id -> new id), for swap_end
         self._state: dict = {"running": False, "_generation": 0}
         self._kinds: dict = {}
         self._cache: dict = {}
@@ -333,6 +336,8 @@ class TrafficProcess(Component):
         proc, conn = self._proc, self._conn
         self._proc = self._conn = None
         self._pending = 0
+        self._tags.clear()
+        self._adopted = None
         if proc is not None:
             _ask_exit(proc, conn)
             self._retired.append((proc, conn))
@@ -360,13 +365,17 @@ class TrafficProcess(Component):
                     self._proc.kill()
             self._proc = None
             self._pending = 0
+            self._tags.clear()
             raise SimulationError(f"SUMO's worker process ended unexpectedly (exit code {code}); "
                                   "SUMO crashed on this network or scenario") from None
+        tag = self._tags.popleft() if self._tags else None
         self._state.update(state)
         for name, level, msg in records:
             logging.getLogger(name).log(level, "%s", msg)
         if status == "err":
             raise value
+        if tag == "adopt":
+            self._adopted = value
         if status == "step":
             self._prefetched = value
         return status, value
@@ -382,7 +391,7 @@ class TrafficProcess(Component):
             out = self._recv()
         return out
 
-    def _post(self, msg) -> None:
+    def _post(self, msg, tag: str | None = None) -> None:
         """Send a request without waiting for its answer."""
         if self._conn is None:
             raise SimulationError("SUMO is not running: call setup() first")
@@ -391,8 +400,10 @@ class TrafficProcess(Component):
             self._conn.send(msg)
         except (EOFError, OSError, BrokenPipeError):
             self._pending = 0
+            self._tags.clear()
             self._recv()   # raises the worker's death as a SimulationError
         self._pending += 1
+        self._tags.append(tag)
 
     def _call(self, path, args, kwargs):
         static = path in _STATIC
@@ -551,29 +562,52 @@ class TrafficProcess(Component):
         (``prepare_network``), the actors are captured here, the worker switched to the
         prepared one and the actors inserted there: no wait for SUMO to load. Otherwise the
         worker restarts SUMO itself."""
+        self.swap_begin(new_net, new_routes, keep_radius, center)
+        return self.swap_end()
+
+    def swap_begin(self, new_net, new_routes=(), keep_radius: float = 100.0, center=None) -> None:
+        """The swap without waiting for its second half: the actors are captured from this
+        SUMO (a few ms), the prepared SUMO takes over, and it inserts them while the caller
+        goes on (``swap_adopt``: two SUMO steps and the inserts). Steps and calls sent after
+        this run after it; ``swap_end()`` gives its answer. Until then, reads under
+        ``lagged_reads`` are still answered from the last step of the old network (the frame
+        that started it drives on that state). Without a prepared SUMO it swaps the slow way,
+        here and now."""
         if isinstance(new_routes, (str, os.PathLike)):
             new_routes = [new_routes]
         args = (str(Path(new_net)), [str(Path(p)) for p in new_routes])
+        self._adopted = None
         nxt = self._next
         if nxt is None or nxt["args"] != args:
             self.discard_prepared()
-            mapping = self._call(("swap_network",), (new_net, list(new_routes)),
-                                 dict(keep_radius=keep_radius, center=center))
+            self._adopted = self._call(("swap_network",), (new_net, list(new_routes)),
+                                       dict(keep_radius=keep_radius, center=center))
             self._switched(args)
-            return mapping
+            return
         self.prepared_ready(block=True)
         self._next = None
         if nxt["error"] is not None:
             _ask_exit(nxt["proc"], nxt["conn"])
             self._retired.append((nxt["proc"], nxt["conn"]))
             raise nxt["error"]
+        last_step = self._prefetched      # (the capture below clears it)
         carry = self._call(("swap_capture",), (keep_radius, center), {})
         old = (self._proc, self._conn)
         self._proc, self._conn = nxt["proc"], nxt["conn"]
         _ask_exit(*old)
         self._retired.append(old)
+        kinds = self._kinds
         self._switched(args)
-        return self._call(("swap_adopt",), (carry,), {})
+        self._kinds = kinds               # (the same SumoTraffic on the other side)
+        self._prefetched = last_step
+        self._post(("call", ("swap_adopt",), (carry,), {}), tag="adopt")
+
+    def swap_end(self) -> dict:
+        """Old id -> new id of the actors that ``swap_begin`` carried over (waits for them)."""
+        if self._adopted is None:
+            self.sync()
+        mapping, self._adopted = self._adopted, None
+        return mapping if mapping is not None else {}
 
     def _switched(self, args) -> None:
         """The worker now runs SUMO on another network: nothing read before holds."""

@@ -161,7 +161,14 @@ def test_next_window_built_in_background_and_swapped_in(motorway_world):
             while sim.streamer.swaps == 0 and time.time() < deadline:
                 near = set(sim.mirror.active)
                 sim.step()
-            assert sim.traffic._proc.pid == prepared
+            # the swap goes on over the next two frames, without waiting for SUMO: the first
+            # captures the actors and hands them to the new SUMO, which inserts them while that
+            # frame's physics runs; the second takes their new ids and the route
+            assert sim.traffic._proc.pid == pid and sim._swap_next is not None
+            sim.step()
+            assert sim.traffic._proc.pid == prepared and sim._swap_adopting is not None
+            sim.step()
+            assert sim._swap_adopting is None and sim.streamer.swap_phases_ms[-1].keys() >= {"capture", "replan"}
         assert sim.streamer.swaps == 1, sim.streamer.errors
         assert sim.streamer.center == window
         assert sim.world.net_file.parent.parent == motorway_world / "windows" / f"{window[0]}_{window[1]}"
