@@ -176,28 +176,27 @@ def _strips(C, gid, z, halfw, lift=0.0, seg_mask=None):
     return v, f[order], fg[order]
 
 
-def _top_surface_z(xy, parts):
+def _top_surface_z(xy, parts, cell: float = 8.0):
     """Height of the highest triangle of `parts` (MeshParts) over each point of `xy` (n, 2);
     NaN where there is none."""
     top = np.full(len(xy), -np.inf)
-    parts = [p for p in parts if len(p.faces)]
-    if not parts or not len(xy):
+    # only the triangles that can hold a point: with a corner in a cell next to one of a
+    # point's, or spanning more than a cell (one that holds a point and spans less has its
+    # corners within a cell of it)
+    near = _cell_keys(xy, cell, dilate=True)
+    T = []
+    for p in parts:
+        if not len(p.faces):
+            continue
+        vnear = np.isin(_cell_keys(p.vertices[:, :2], cell), near)
+        keep = vnear[p.faces].any(axis=1)
+        rest = np.nonzero(~keep)[0]
+        R = p.vertices[p.faces[rest], :2]
+        keep[rest[np.ptp(R, axis=1).max(axis=1) > cell]] = True
+        T.append(p.vertices[p.faces[keep]])
+    if not T or not len(xy):
         return np.full(len(xy), np.nan)
-    offs = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
-    V = np.vstack([p.vertices for p in parts])
-    F = np.vstack([p.faces + o for p, o in zip(parts, offs)])
-    # only the triangles that can hold a point: those with a corner in a coarse grid cell
-    # next to one of a point's, and the large ones (a triangle that holds a point and spans
-    # less than a cell has its corners within a cell of it)
-    coarse = 8.0
-    ij = np.floor(xy / coarse).astype(np.int64)
-    near = np.unique(((ij[:, 0, None] + np.array([-1, -1, -1, 0, 0, 0, 1, 1, 1])) << 32)
-                     + (ij[:, 1, None] + np.array([-1, 0, 1, -1, 0, 1, -1, 0, 1])))
-    vij = np.floor(V[:, :2] / coarse).astype(np.int64)
-    vnear = np.isin((vij[:, 0] << 32) + vij[:, 1], near)
-    T = V[F]                                                   # (n, 3, 3)
-    span = np.ptp(T[:, :, :2], axis=1).max(axis=1)
-    T = T[vnear[F].any(axis=1) | (span > coarse)]
+    T = np.concatenate(T)                                      # (n, 3, 3)
     a, b, c = T[:, 0], T[:, 1], T[:, 2]
     det = (b[:, 1] - c[:, 1]) * (a[:, 0] - c[:, 0]) + (c[:, 0] - b[:, 0]) * (a[:, 1] - c[:, 1])
     ok = np.abs(det) > 1e-9
@@ -231,6 +230,17 @@ def _top_surface_z(xy, parts):
     np.maximum.at(top, pi[inside], z[inside])
     top[~np.isfinite(top)] = np.nan
     return top
+
+
+def _cell_keys(xy, cell: float, dilate: bool = False):
+    """One int64 per point: its square of a grid of `cell` metres; with `dilate`, the unique
+    keys of the points' squares and of the 8 around each."""
+    ij = np.floor(xy / cell).astype(np.int64)
+    if not dilate:
+        return (ij[:, 0] << 32) + ij[:, 1]
+    ij = np.unique(ij, axis=0)
+    d = np.array([-1, 0, 1])
+    return np.unique(((ij[:, 0, None, None] + d[:, None]) << 32) + (ij[:, 1, None, None] + d[None, :]))
 
 
 def _part(kind, v, f, fg, n_groups, ids, elements, osm, centroids):
@@ -275,36 +285,41 @@ def _open_ring(shape):
     return ring if len(ring) >= 3 else None
 
 
-def _dense_triangulated(shapes, step: float):
-    """Each polygon shape as an open ring with a point at least every `step` metres (its own
-    points kept), and its triangles (flat vertex indices into the ring, counter-clockwise);
-    both None where fewer than 3 points are left. GEOS's constrained Delaunay triangulation
-    where the ring is a valid polygon, else earcut. (The points along a junction's long side
+def _dense_triangulated(shapes, step: float, delaunay: bool = True):
+    """Polygon shapes as open rings with a point at least every `step` metres (their own
+    points kept), triangulated: GEOS's constrained Delaunay triangulation where the ring is a
+    valid polygon, else earcut. Returns the points (n, 2), the shape of each point, the
+    triangles (m, 3: rows of the points, counter-clockwise) and the shape of each triangle;
+    shapes with fewer than 3 points have neither. (The points along a junction's long side
     take their heights from the lane ends that touch it, not from its far corners; Delaunay
     triangles are well shaped, where earcut's long fans made a sloping junction fold between
     corners of different heights.)"""
-    rings = [_open_ring(sh) for sh in shapes]
-    tris = [None] * len(rings)
-    idx = [k for k, r in enumerate(rings) if r is not None]
+    idx, rings = [], []
+    for k, sh in enumerate(shapes):
+        r = _open_ring(sh)
+        if r is not None:
+            idx.append(k)
+            rings.append(r[:, :2])
     if not idx:
-        return rings, tris
-    P0, g0 = _concat([rings[k][:, :2] for k in idx])
+        return np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
+    idx = np.array(idx)
+    P0, g0 = _concat(rings)
     lens = np.bincount(g0, minlength=len(idx))
     ends = np.cumsum(lens)
     Pc = np.insert(P0, ends, P0[ends - lens], axis=0)          # each ring closed
     gc = np.insert(g0, ends, np.arange(len(idx)))
     D, dg = resample_many(Pc, gc, step)
     dlen = np.bincount(dg, minlength=len(idx))
-    dend = np.cumsum(dlen)
     keep_pt = np.ones(len(D), dtype=bool)
-    keep_pt[dend - 1] = False                                  # the open rings
+    keep_pt[np.cumsum(dlen) - 1] = False                       # the open rings
     P, g = D[keep_pt], dg[keep_pt]
     start = np.cumsum(dlen - 1) - (dlen - 1)
-    for n, k in enumerate(idx):
-        rings[k] = P[start[n]:start[n] + dlen[n] - 1]
-    polys = shapely.polygons(shapely.linearrings(D, indices=dg))
-    valid = np.nonzero(shapely.is_valid(polys))[0]
     done = np.zeros(len(idx), dtype=bool)
+    F, FG = [np.zeros((0, 3), np.int64)], [np.zeros(0, np.int64)]
+    valid = []
+    if delaunay:
+        polys = shapely.polygons(shapely.linearrings(D, indices=dg))
+        valid = np.nonzero(shapely.is_valid(polys))[0]
     if len(valid):
         C, owner = shapely.get_coordinates(shapely.constrained_delaunay_triangles(polys[valid]),
                                            return_index=True)
@@ -315,8 +330,7 @@ def _dense_triangulated(shapes, step: float):
         key = (P[:, 0] + g * 1e6) + 1j * P[:, 1]
         ck = (C[:, 0] + owner * 1e6) + 1j * C[:, 1]
         order = np.argsort(key)
-        pos = np.minimum(np.searchsorted(key[order], ck), len(P) - 1)
-        vid = order[pos]
+        vid = order[np.minimum(np.searchsorted(key[order], ck), len(P) - 1)]
         bad = np.zeros(len(idx), dtype=bool)
         bad[owner[key[vid] != ck]] = True
         owner = owner[::3]
@@ -324,18 +338,19 @@ def _dense_triangulated(shapes, step: float):
         a, b, c = P[vid[:, 0]], P[vid[:, 1]], P[vid[:, 2]]
         cw = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]) < 0
         vid[cw] = vid[cw][:, ::-1]
-        bounds = np.searchsorted(owner, np.arange(len(idx) + 1))   # (GEOS keeps the order)
-        for n in valid:
-            if bad[n] or bounds[n] == bounds[n + 1]:
-                continue
-            tris[idx[n]] = (vid[bounds[n]:bounds[n + 1]] - start[n]).ravel().astype(np.uint32)
-            done[n] = True
+        ok = ~bad[owner]
+        F.append(vid[ok])
+        FG.append(owner[ok])
+        done[np.unique(owner[ok])] = True
     n1 = np.zeros(1, dtype=np.uint32)
     for n in np.nonzero(~done)[0]:
-        ring = rings[idx[n]]
-        n1[0] = len(ring)
-        tris[idx[n]] = mapbox_earcut.triangulate_float64(np.ascontiguousarray(ring), n1)
-    return rings, tris
+        n1[0] = dlen[n] - 1
+        t = mapbox_earcut.triangulate_float64(np.ascontiguousarray(P[start[n]:start[n] + dlen[n] - 1]), n1)
+        F.append(t.reshape(-1, 3).astype(np.int64) + start[n])
+        FG.append(np.full(len(t) // 3, n, dtype=np.int64))
+    F, FG = np.concatenate(F), np.concatenate(FG)
+    order = np.argsort(FG, kind="stable")
+    return P, idx[g], F[order], idx[FG[order]]
 
 
 def carriageway_parts(net) -> list:
@@ -462,23 +477,23 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
                         + [node_num.setdefault(edges[lane_edge[cg[i]]].to_node, len(node_num)) for i in last],
                         dtype=np.int64)
     ends = np.concatenate([first, last])
-    EP = np.vstack([C[ends], C[ends] + nrm[ends], C[ends] - nrm[ends]])
+    EP = np.vstack([C[ends], C[ends] + nrm[ends], C[ends] - nrm[ends]])   # (centres and corners)
     EZ = np.tile(cz[ends], 3)
     EN = np.tile(end_node, 3)
-    order = np.argsort(EN, kind="stable")
-    EP, EZ, EN = EP[order], EZ[order], EN[order]
 
-    def zfun_at(xy, junction_ids, counts):
-        """Heights for points of junctions: `counts[k]` points of junction `junction_ids[k]`."""
-        node = np.repeat(np.array([node_num.get(j, -1) for j in junction_ids], dtype=np.int64), counts)
-        lo, hi = np.searchsorted(EN, node, "left"), np.searchsorted(EN, node, "right")
-        cnt = np.where(node >= 0, hi - lo, 0)
-        qi = np.repeat(np.arange(len(xy)), cnt)
-        ei = np.repeat(lo, cnt) + np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-        w = 1.0 / (((xy[qi] - EP[ei]) ** 2).sum(axis=1) + 1e-6) ** 2
-        wsum = np.bincount(qi, w, minlength=len(xy))
-        z = np.bincount(qi, w * EZ[ei], minlength=len(xy)) / np.maximum(wsum, 1e-300)
-        none = cnt == 0
+    etree = cKDTree(EP)
+
+    def zfun_at(xy, junction_ids, of):
+        """Heights for points of junctions: point i is of junction `junction_ids[of[i]]`
+        (among the nearest lane ends, those of its junction)."""
+        node = np.array([node_num.get(j, -1) for j in junction_ids] + [-1], dtype=np.int64)[of]
+        k = min(16, len(EP))
+        d, nb = etree.query(xy, k=k, workers=-1)
+        d, nb = d.reshape(len(xy), k), nb.reshape(len(xy), k)
+        w = np.where(EN[nb] == node[:, None], 1.0 / (d * d + 1e-6) ** 2, 0.0)
+        wsum = w.sum(axis=1)
+        z = (w * EZ[nb]).sum(axis=1) / np.maximum(wsum, 1e-300)
+        none = wsum == 0.0
         if none.any():
             z[none] = zfun(xy[none])
         return z
@@ -498,27 +513,20 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     jpolys = []
 
     def polygon_part(kind):
-        rings, tris, keep = [], [], []
         cand = [k for k in range(len(polys)) if pkind[k] == kind]
-        for k, ring, tri in zip(cand, *_dense_triangulated([polys[k] for k in cand], step)):
-            if ring is None or tri is None or len(tri) == 0:
-                continue
-            rings.append(ring)
-            tris.append(tri)
-            keep.append(k)
-        if not keep:
+        V2, vg, F, fg = _dense_triangulated([polys[k] for k in cand], step)
+        keep_c = np.unique(fg)                      # (shapes with triangles)
+        if not len(keep_c):
             return None
+        keep = [cand[c] for c in keep_c]
+        remap = -np.ones(len(cand), dtype=np.int64)
+        remap[keep_c] = np.arange(len(keep_c))
+        FG = remap[fg]
         if kind == "asphalt":
-            jpolys.extend(rings)
-        # faces renumbered into the stacked vertices, one group per polygon (in one go)
-        nv = np.array([len(r) for r in rings], dtype=np.int64)
-        nt = np.array([len(t) for t in tris], dtype=np.int64) // 3
-        F = np.concatenate(tris).reshape(-1, 3).astype(np.int64) + np.repeat(np.cumsum(nv) - nv, nt)[:, None]
-        FG = np.repeat(np.arange(len(keep)), nt)
-        V2 = np.vstack(rings)
+            jpolys.extend(range(len(keep)))
         # (a walking area ":J_w0" lies around junction J, and overlaps its lanes' ends too)
         owner = [pid[k] if kind == "asphalt" else pid[k][1:pid[k].rfind("_w")] for k in keep]
-        Z = zfun_at(V2, owner, [len(r) for r in rings])
+        Z = zfun_at(V2, owner, remap[vg])           # (points of shapes left out: -1, unused)
         if kind == "sidewalk":
             Z += SIDEWALK_LIFT
         V = np.column_stack([V2, Z])
