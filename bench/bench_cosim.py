@@ -50,16 +50,18 @@ def sumo_alone(net, routes, seconds, seed, warm):
         for _ in range(int(warm / 0.1)):
             libsumo.simulationStep()
         n = int(seconds / 0.1)
-        actors = []
+        actors, steps = [], np.empty(n)
         t0 = time.perf_counter()
         for i in range(n):
+            s0 = time.perf_counter()
             libsumo.simulationStep()
+            steps[i] = time.perf_counter() - s0
             if i % 50 == 0:
                 actors.append(libsumo.vehicle.getIDCount() + libsumo.person.getIDCount())
         wall = time.perf_counter() - t0
     finally:
         libsumo.close()
-    return seconds / wall, statistics.mean(actors)
+    return seconds / wall, statistics.mean(actors), steps * 1000.0
 
 
 def cosim(world, traffic, seconds, seed, warm, speed, parallel):
@@ -164,9 +166,13 @@ def main(argv=None):
     d = generate_demand(world / w["net_file"], world / "traffic", density=a.traffic, seed=a.seed,
                         duration=a.warm + a.seconds + 60.0)
     print(f"== {a.preset}, traffic {a.traffic}, seed {a.seed}: {a.warm:.0f} s warm-up, {a.seconds:.0f} s measured")
-    rtf_sumo, actors = sumo_alone(world / w["net_file"], d.route_files, a.seconds, a.seed, a.warm)
+    rtf_sumo, actors, steps = sumo_alone(world / w["net_file"], d.route_files, a.seconds, a.seed, a.warm)
     print(f"   SUMO alone      : x{rtf_sumo:6.1f} real time, {actors:.0f} actors in the simulation "
           f"(load average {os.getloadavg()[0]:.2f})")
+    # (the yardstick for the frame-time goal: how much SUMO's own step time varies)
+    print(f"      step ms: median {np.median(steps):.2f}, p99 {np.percentile(steps, 99):.2f}, p99.9 "
+          f"{np.percentile(steps, 99.9):.2f} ({np.percentile(steps, 99.9) / np.median(steps):.2f} x median), "
+          f"max {steps.max():.2f}")
     modes = [("serial", False), ("pipelined", True)] if a.mode == "both" else [(a.mode, a.mode == "pipelined")]
     for name, parallel in modes:
         rtf_co, s, f, ld = cosim(world, a.traffic, a.seconds, a.seed, a.warm, a.speed, parallel)
