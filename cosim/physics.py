@@ -97,16 +97,17 @@ class PhysicsWorld:
 
     # --- streaming ------------------------------------------------------------------------
     def update(self, x: float, y: float, keep_radius: float, unload_radius: float | None = None,
-               budget_ms: float | None = None) -> dict:
+               budget_ms: float | None = None, stale: bool = True) -> dict:
         """Load tiles within keep_radius (nearest first, within a time budget), unload those
-        beyond unload_radius (hysteresis). Returns counts of what happened."""
+        beyond unload_radius (hysteresis); with ``stale`` False, stale tiles (see ``refresh``)
+        wait. Returns counts of what happened."""
         unload_radius = unload_radius or keep_radius + self.world.tile_size
         budget = self.load_budget_ms if budget_ms is None else budget_ms
         want = [k for k in self.world.tiles_within(x, y, keep_radius) if self.world.is_built(k)]
         t0 = time.perf_counter()
         loaded = 0
         for k in want:
-            if k in self.tiles and k not in self._stale:
+            if k in self.tiles and (k not in self._stale or not stale):
                 continue
             if loaded and (time.perf_counter() - t0) * 1000.0 > budget:
                 break

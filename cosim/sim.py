@@ -135,6 +135,7 @@ class Simulation:
         # to start at the next frame's start, then the plan to take once SUMO has adopted
         self._swap_next = None
         self._swap_adopting = None
+        self._swap_hold = 0                # frames left without reloading stale tiles
         self._extend_retry_t = 0.0         # no route extension before this sim time
         self._setup_done = False
 
@@ -357,10 +358,10 @@ class Simulation:
             if self._swap_adopting is not None:
                 self._swap_note("adopt_wait", t0)
                 self._swap_adopted()
-            if self._swap_next is not None:
-                self._swap_start()
-            self.traffic.set_ego_pose(st.x, st.y, st.yaw, max(0.0, st.speed))
-            self.traffic.step()
+            pose = (st.x, st.y, st.yaw, max(0.0, st.speed))
+            if self._swap_next is None or not self._swap_start(pose):
+                self.traffic.set_ego_pose(*pose)
+                self.traffic.step()
         with self.traffic.lagged_reads() if pipelined else contextlib.nullcontext():
             self.t += cfg.step_length_s
             self.last_snapshot = snap
@@ -392,7 +393,10 @@ class Simulation:
         # streaming
         if self._replan_pending and not swapping and not self.path.lane_of[self._path_idx][0].startswith(":"):
             self.replan()                   # after a swap in a junction: now on the lane after it
-        self.physics.update(st.x, st.y, self.keep_radius)
+        # (tiles of chunks a new window replaced are reloaded later, not in the frames that
+        # carry the SUMO swap: they are loaded, only older)
+        self.physics.update(st.x, st.y, self.keep_radius, stale=not self._swap_hold)
+        self._swap_hold = max(0, self._swap_hold - 1)
         self.streamer.step(st.x, st.y)
         if not self._covered(st.x, st.y):
             self.summary.sensor_range_violations += 1
@@ -523,6 +527,7 @@ class Simulation:
         the route (``plan``, made ahead; else planned then). Returns the times taken now (ms)."""
         if self._pipelined and getattr(self.traffic, "preparing", None) is not None:
             self._swap_next = (net_file, list(routes), plan)
+            self._swap_hold = 3
             return {}
         t0 = time.perf_counter()
         mapping = self.traffic.swap_network(net_file, routes, keep_radius=self.cfg.mirror_radius_m)
@@ -533,14 +538,17 @@ class Simulation:
         log.info("SUMO swapped to %s, %d actors kept", Path(net_file).parent.parent.name, len(mapping))
         return {"sumo": round((t1 - t0) * 1000.0, 1), "replan": round((time.perf_counter() - t1) * 1000.0, 1)}
 
-    def _swap_start(self):
+    def _swap_start(self, pose) -> bool:
+        """The swap's first frame: True if SUMO's insert of the carried actors is also this
+        frame's step (the ego at `pose`)."""
         t0 = time.perf_counter()
         net_file, routes, plan = self._swap_next
         self._swap_next = None
-        self.traffic.swap_begin(net_file, routes, keep_radius=self.cfg.mirror_radius_m)
+        stepped = self.traffic.swap_begin(net_file, routes, keep_radius=self.cfg.mirror_radius_m, ego_pose=pose)
         self._routes = routes
         self._swap_adopting = (plan, net_file)
         self._swap_note("capture", t0)
+        return stepped
 
     def _swap_adopted(self):
         t0 = time.perf_counter()

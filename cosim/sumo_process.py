@@ -236,9 +236,14 @@ def _serve(conn):
 
 # --- the main-process side ------------------------------------------------------------------
 def _ask_exit(proc, conn) -> None:
-    """Ask a worker to close SUMO and end (without waiting)."""
+    """Ask a worker to close SUMO and end (without waiting). Closing a big simulation takes
+    CPU for a while: at the lowest priority, so that the loop and the new SUMO come first."""
     try:
         if proc.poll() is None:
+            try:
+                os.setpriority(os.PRIO_PROCESS, proc.pid, 19)
+            except (AttributeError, OSError):
+                pass
             conn.send(("exit", (), (), {}))
     except Exception:
         pass
@@ -565,14 +570,17 @@ class TrafficProcess(Component):
         self.swap_begin(new_net, new_routes, keep_radius, center)
         return self.swap_end()
 
-    def swap_begin(self, new_net, new_routes=(), keep_radius: float = 100.0, center=None) -> None:
+    def swap_begin(self, new_net, new_routes=(), keep_radius: float = 100.0, center=None,
+                   ego_pose: tuple | None = None) -> bool:
         """The swap without waiting for its second half: the actors are captured from this
         SUMO (a few ms), the prepared SUMO takes over, and it inserts them while the caller
         goes on (``swap_adopt``: two SUMO steps and the inserts). Steps and calls sent after
         this run after it; ``swap_end()`` gives its answer. Until then, reads under
         ``lagged_reads`` are still answered from the last step of the old network (the frame
-        that started it drives on that state). Without a prepared SUMO it swaps the slow way,
-        here and now."""
+        that started it drives on that state). With ``ego_pose`` (x, y, yaw, speed) the insert
+        is also the next step, the ego posed there (``SumoTraffic.swap_adopt(advance=True)``):
+        the caller sends no step of its own then. Without a prepared SUMO it swaps the slow way,
+        here and now (then the caller steps as usual). Returns True if the swap took the step."""
         if isinstance(new_routes, (str, os.PathLike)):
             new_routes = [new_routes]
         args = (str(Path(new_net)), [str(Path(p)) for p in new_routes])
@@ -583,7 +591,7 @@ class TrafficProcess(Component):
             self._adopted = self._call(("swap_network",), (new_net, list(new_routes)),
                                        dict(keep_radius=keep_radius, center=center))
             self._switched(args)
-            return
+            return False
         self.prepared_ready(block=True)
         self._next = None
         if nxt["error"] is not None:
@@ -600,7 +608,12 @@ class TrafficProcess(Component):
         self._switched(args)
         self._kinds = kinds               # (the same SumoTraffic on the other side)
         self._prefetched = last_step
-        self._post(("call", ("swap_adopt",), (carry,), {}), tag="adopt")
+        kw = {} if ego_pose is None else dict(advance=True, ego_pose=tuple(ego_pose))
+        if ego_pose is not None:
+            self._last_pose = (float(ego_pose[0]), float(ego_pose[1]))
+            self._steps += 1
+        self._post(("call", ("swap_adopt",), (carry,), kw), tag="adopt")
+        return ego_pose is not None
 
     def swap_end(self) -> dict:
         """Old id -> new id of the actors that ``swap_begin`` carried over (waits for them)."""

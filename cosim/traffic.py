@@ -35,6 +35,7 @@ out as one-line SimulationError messages taken from SUMO's error log.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -1034,11 +1035,18 @@ class SumoTraffic(Component):
                     ego_speed=self._ego_pending_speed, t_before=self.sim_time, stats=self.stats,
                     generation=self._generation)
 
-    def swap_adopt(self, carry: dict) -> dict[str, str]:
+    def swap_adopt(self, carry: dict, advance: bool = False, ego_pose: tuple | None = None) -> dict[str, str]:
         """The second half of a swap, on a SUMO just started on the new network: its own
         demand's actors around the ego make room (after one step, which inserts the demand's
         trips in progress), the carried actors and the ego are inserted where they were, and
-        the clock continues. Returns old id -> new id of the actors carried over."""
+        the clock continues. Returns old id -> new id of the actors carried over.
+
+        With ``advance``, it is also the loop's next step, in one SUMO step instead of two
+        hidden ones and a step: vehicles go in where their speed takes them in that step,
+        the ego where ``ego_pose`` (x, y, yaw, speed) says, and the clock reads one step after
+        the capture (persons go in where they were, a step of walking behind: 0.1-0.15 m)."""
+        if advance:
+            return self._adopt_advanced(carry, ego_pose)
         s = self._require()
         self._generation = max(self._generation, int(carry["generation"]) + 1)
         self.warm_up()                        # (the demand's trips in progress are inserted)
@@ -1098,6 +1106,60 @@ class SumoTraffic(Component):
             self._subscribe_context(self._ctx_anchor, self._ctx_radius)
         log.info("swap_network: %s, kept %d of %d actors within %.0f m", self.net_file.name,
                  len(mapping), len(kept), carry["keep_radius"])
+        return mapping
+
+    def _adopt_advanced(self, carry: dict, ego_pose) -> dict[str, str]:
+        s = self._require()
+        self._generation = max(self._generation, int(carry["generation"]) + 1)
+        self.warm_up()
+        cx, cy = carry["center"]
+        self._make_room(cx, cy, carry["keep_radius"] + SWAP_ROOM_MARGIN_M)
+        self.stats = carry["stats"]
+        ego, ego_spec = carry["ego"], carry["ego_spec"]
+        dt = self.step_length
+        ahead = []          # each vehicle where its speed takes it in the step
+        for k in carry["kept"]:
+            if not k.person and k.speed > 0.0:
+                a = math.radians(k.angle)
+                k = dataclasses.replace(k, x=k.x + k.speed * dt * math.sin(a), y=k.y + k.speed * dt * math.cos(a),
+                                        lane_pos=k.lane_pos + k.speed * dt)
+                if k.lane_length >= 0 and k.lane_pos > k.lane_length:
+                    k = dataclasses.replace(k, lane_id="", lane_length=-1.0)   # (past its lane's end)
+            ahead.append(k)
+        mapping: dict[str, str] = {}
+        for k in ahead:
+            new_id = f"{k.old_id.split('~')[0]}~{self._generation}"
+            try:
+                if self._insert_kept(k, new_id):
+                    mapping[k.old_id] = new_id
+            except self._exc as e:
+                log.info("swap: could not carry %s over: %s", k.old_id, e)
+        if ego_spec is not None:
+            self._ego_spec = ego_spec
+            if ego is not None:
+                self._ego_spec["edges"] = [ego["edge"]] if ego["edge"] in self._edge_set() \
+                    else [self._any_edge_for(ego_spec["vclass"])]
+            self._readd_ego()
+            pose = ego_pose if ego_pose is not None else \
+                ((ego["x"], ego["y"], ego["yaw"], ego["speed"]) if ego is not None else None)
+            if pose is not None:
+                self.set_ego_pose(*pose)
+        # one step: it inserts everything and is the loop's step; the clock reads one step
+        # after the capture
+        self._time_offset = carry["t_before"] - s.simulation.getTime()
+        self.step()
+        for k in ahead:
+            nid = mapping.get(k.old_id)
+            if nid is None or k.person:
+                continue
+            try:
+                s.vehicle.setPreviousSpeed(nid, k.speed)
+            except self._exc:
+                pass
+        if self._ctx_anchor is not None:   # refresh: the step's results predate the speeds
+            self._subscribe_context(self._ctx_anchor, self._ctx_radius)
+        log.info("swap_network: %s, kept %d of %d actors within %.0f m (in the loop's step)", self.net_file.name,
+                 len(mapping), len(ahead), carry["keep_radius"])
         return mapping
 
     def _make_room(self, cx: float, cy: float, radius: float) -> int:

@@ -43,26 +43,31 @@ def _start_lane(s):
 def _drive(t, lane, steps, each_step=None):
     """Ego placed on `lane` and moved 1 m per step (``each_step(k)`` is called before step k);
     the actors near it after every step, and the ego's centre at each step."""
-    s = t.sumo
-    shape = np.array(s.lane.getShape(lane))
-    d = np.r_[0.0, np.cumsum(np.hypot(*np.diff(shape, axis=0).T))]
     t.add_ego([lane.rsplit("_", 1)[0]])
     out, centres = [], []
     for k in range(steps):
         if each_step is not None:
             each_step(k)
-        pos = 10.0 + k * 1.0
-        fx, fy = np.interp(pos, d, shape[:, 0]), np.interp(pos, d, shape[:, 1])
-        i = min(int(np.searchsorted(d, pos)), len(d) - 1)
-        ang = math.degrees(math.atan2(shape[i, 0] - shape[i - 1, 0], shape[i, 1] - shape[i - 1, 1]))
-        cx, cy = front_to_center(fx, fy, ang, 4.5)
-        t.set_ego_pose(float(cx), float(cy), sumo_angle_to_yaw(ang), 10.0)
+        cx, cy, yaw, v = _ego_pose(t, lane, k)
+        t.set_ego_pose(cx, cy, yaw, v)
         t.step()
         snap = t.actors_near(float(cx), float(cy), 120.0)
         centres.append((float(cx), float(cy)))
         out.append((round(t.sim_time, 6), sorted(zip(snap.ids, np.round(snap.x, 6), np.round(snap.y, 6),
                                                      snap.lane))))
     return out, centres
+
+
+def _ego_pose(t, lane, k):
+    """The ego's pose at step k of a drive along `lane` at 1 m per step: centre x, y, yaw, speed."""
+    shape = np.array(t.sumo.lane.getShape(lane))
+    d = np.r_[0.0, np.cumsum(np.hypot(*np.diff(shape, axis=0).T))]
+    pos = 10.0 + k * 1.0
+    fx, fy = np.interp(pos, d, shape[:, 0]), np.interp(pos, d, shape[:, 1])
+    i = min(int(np.searchsorted(d, pos)), len(d) - 1)
+    ang = math.degrees(math.atan2(shape[i, 0] - shape[i - 1, 0], shape[i, 1] - shape[i - 1, 1]))
+    cx, cy = front_to_center(fx, fy, ang, 4.5)
+    return float(cx), float(cy), sumo_angle_to_yaw(ang), 10.0
 
 
 def test_worker_gives_the_same_traffic_as_in_process(net, routes):
@@ -210,3 +215,52 @@ def test_swap_to_a_network_started_ahead(net, routes, tmp_path):
     assert any(a[0].startswith("veh") for a in want[29][1])
     ex, ey = ego_xy
     assert len([a for a in near_new if math.hypot(a[1] - ex, a[2] - ey) < 75.0]) <= 1
+
+
+def test_swap_that_takes_the_loops_step(net, tmp_path):
+    """The loop's swap (``swap_begin`` with the ego's pose) inserts the carried actors in the
+    step the loop would take anyway, each vehicle where its speed takes it in that step: one
+    step later, the same actors as a swap and then a step, within a few decimetres."""
+    first = generate_demand(net, tmp_path / "a", "dense", seed=10, duration=200).route_files
+    other = generate_demand(net, tmp_path / "b", "dense", seed=9, duration=200).route_files
+    after = {}
+    for advance in (False, True):
+        t = TrafficProcess(net, first, seed=4)
+        t.setup()
+        try:
+            lane = _start_lane(t.sumo)
+            for _ in range(300):
+                t.step()
+            t.add_ego([lane.rsplit("_", 1)[0]])
+            for k in range(30):
+                if k == 5:
+                    t.prepare_network(t.net_file, other)
+                t.set_ego_pose(*_ego_pose(t, lane, k))
+                t.step()
+            assert t.prepared_ready(block=True)
+            before = t.actors_near(*_ego_pose(t, lane, 29)[:2], 150.0)
+            t0 = t.sim_time
+            if advance:
+                assert t.swap_begin(t.net_file, other, keep_radius=120.0, ego_pose=_ego_pose(t, lane, 30))
+                mapping = t.swap_end()
+            else:
+                mapping = t.swap_network(t.net_file, other, keep_radius=120.0)
+                assert t.sim_time == pytest.approx(t0)
+                t.set_ego_pose(*_ego_pose(t, lane, 30))
+                t.step()
+            assert t.sim_time == pytest.approx(t0 + 0.1)
+            snap = t.actors_near(*_ego_pose(t, lane, 30)[:2], 150.0)
+            back = {v: k for k, v in mapping.items()}
+            after[advance] = {back[i]: (x, y, v) for i, x, y, v, kind in
+                              zip(snap.ids, snap.x, snap.y, snap.speed, snap.kind) if i in back and kind != "person"}
+            was = {i: (x, y, v) for i, x, y, v in zip(before.ids, before.x, before.y, before.speed)}
+        finally:
+            t.teardown()
+    assert not live_workers()
+    assert len(after[True]) >= 3 and after[True].keys() == after[False].keys()
+    for i, (x, y, v) in after[True].items():
+        x0, y0, v0 = after[False][i]
+        assert math.hypot(x - x0, y - y0) < 0.5 and abs(v - v0) < 0.5, (i, (x, y, v), (x0, y0, v0))
+        # and it moved on from where it was, as it would have without a swap
+        xb, yb, vb = was[i]
+        assert abs(math.hypot(x - xb, y - yb) - 0.1 * vb) < 0.5, (i, (x, y), (xb, yb), vb)
