@@ -1048,30 +1048,9 @@ class SumoTraffic(Component):
         if advance:
             return self._adopt_advanced(carry, ego_pose)
         s = self._require()
-        self._generation = max(self._generation, int(carry["generation"]) + 1)
-        self.warm_up()                        # (the demand's trips in progress are inserted)
-        cx, cy = carry["center"]
-        self._make_room(cx, cy, carry["keep_radius"] + SWAP_ROOM_MARGIN_M)
-        self.stats = carry["stats"]
         kept, ego, ego_spec = carry["kept"], carry["ego"], carry["ego_spec"]
         ego_speed = carry["ego_speed"]
-        mapping: dict[str, str] = {}
-        for k in kept:
-            base = k.old_id.split("~")[0]
-            new_id = f"{base}~{self._generation}"
-            try:
-                if self._insert_kept(k, new_id):
-                    mapping[k.old_id] = new_id
-            except self._exc as e:
-                log.info("swap: could not carry %s over: %s", k.old_id, e)
-        if ego_spec is not None:
-            self._ego_spec = ego_spec
-            if ego is not None:
-                self._ego_spec["edges"] = [ego["edge"]] if ego["edge"] in self._edge_set() \
-                    else [self._any_edge_for(ego_spec["vclass"])]
-            self._readd_ego()
-            if ego is not None:
-                self.set_ego_pose(ego["x"], ego["y"], ego["yaw"], ego_speed or ego["speed"])
+        mapping = self._adopt_insert(carry, kept, None)
         # Two steps settle the carried actors; the clock is shifted so that sim_time after them
         # equals the time before the swap. Step 1 inserts everything at the captured positions.
         # Step 2 holds vehicles there (their speed is then set explicitly) and lets persons walk
@@ -1094,6 +1073,16 @@ class SumoTraffic(Component):
             self.set_ego_pose(ego["x"], ego["y"], ego["yaw"], ego_speed or ego["speed"])
         self.step()
         self.stats.steps -= 2
+        self._set_carried_speeds(kept, mapping)
+        log.info("swap_network: %s, kept %d of %d actors within %.0f m", self.net_file.name,
+                 len(mapping), len(kept), carry["keep_radius"])
+        return mapping
+
+    def _set_carried_speeds(self, kept: list, mapping: dict) -> None:
+        """After the swap's last step: the carried vehicles' speeds as captured (the step
+        derived them from their insertion); the context subscription's results, older than
+        that, are asked for again."""
+        s = self._sim
         for k in kept:
             nid = mapping.get(k.old_id)
             if nid is None or k.person:
@@ -1102,20 +1091,42 @@ class SumoTraffic(Component):
                 s.vehicle.setPreviousSpeed(nid, k.speed)
             except self._exc:
                 pass
-        if self._ctx_anchor is not None:   # refresh: the results of step 2 predate the speeds
+        if self._ctx_anchor is not None:
             self._subscribe_context(self._ctx_anchor, self._ctx_radius)
-        log.info("swap_network: %s, kept %d of %d actors within %.0f m", self.net_file.name,
-                 len(mapping), len(kept), carry["keep_radius"])
-        return mapping
 
-    def _adopt_advanced(self, carry: dict, ego_pose) -> dict[str, str]:
-        s = self._require()
+    def _adopt_insert(self, carry: dict, kept: list, pose) -> dict[str, str]:
+        """What both kinds of ``swap_adopt`` do first: the new demand's vehicles around the
+        ego make room (after SUMO's first second, which inserts the demand's trips in
+        progress), the actors `kept` go in, and the ego at `pose` (x, y, yaw, speed; None:
+        where it was captured). Returns old id -> new id."""
         self._generation = max(self._generation, int(carry["generation"]) + 1)
         self.warm_up()
         cx, cy = carry["center"]
         self._make_room(cx, cy, carry["keep_radius"] + SWAP_ROOM_MARGIN_M)
         self.stats = carry["stats"]
+        mapping: dict[str, str] = {}
+        for k in kept:
+            new_id = f"{k.old_id.split('~')[0]}~{self._generation}"
+            try:
+                if self._insert_kept(k, new_id):
+                    mapping[k.old_id] = new_id
+            except self._exc as e:
+                log.info("swap: could not carry %s over: %s", k.old_id, e)
         ego, ego_spec = carry["ego"], carry["ego_spec"]
+        if ego_spec is not None:
+            self._ego_spec = ego_spec
+            if ego is not None:
+                self._ego_spec["edges"] = [ego["edge"]] if ego["edge"] in self._edge_set() \
+                    else [self._any_edge_for(ego_spec["vclass"])]
+            self._readd_ego()
+            if pose is None and ego is not None:
+                pose = (ego["x"], ego["y"], ego["yaw"], carry["ego_speed"] or ego["speed"])
+            if pose is not None:
+                self.set_ego_pose(*pose)
+        return mapping
+
+    def _adopt_advanced(self, carry: dict, ego_pose) -> dict[str, str]:
+        s = self._require()
         dt = self.step_length
         ahead = []          # each vehicle where its speed takes it in the step
         for k in carry["kept"]:
@@ -1126,38 +1137,12 @@ class SumoTraffic(Component):
                 if k.lane_length >= 0 and k.lane_pos > k.lane_length:
                     k = dataclasses.replace(k, lane_id="", lane_length=-1.0)   # (past its lane's end)
             ahead.append(k)
-        mapping: dict[str, str] = {}
-        for k in ahead:
-            new_id = f"{k.old_id.split('~')[0]}~{self._generation}"
-            try:
-                if self._insert_kept(k, new_id):
-                    mapping[k.old_id] = new_id
-            except self._exc as e:
-                log.info("swap: could not carry %s over: %s", k.old_id, e)
-        if ego_spec is not None:
-            self._ego_spec = ego_spec
-            if ego is not None:
-                self._ego_spec["edges"] = [ego["edge"]] if ego["edge"] in self._edge_set() \
-                    else [self._any_edge_for(ego_spec["vclass"])]
-            self._readd_ego()
-            pose = ego_pose if ego_pose is not None else \
-                ((ego["x"], ego["y"], ego["yaw"], ego["speed"]) if ego is not None else None)
-            if pose is not None:
-                self.set_ego_pose(*pose)
+        mapping = self._adopt_insert(carry, ahead, ego_pose)
         # one step: it inserts everything and is the loop's step; the clock reads one step
         # after the capture
         self._time_offset = carry["t_before"] - s.simulation.getTime()
         self.step()
-        for k in ahead:
-            nid = mapping.get(k.old_id)
-            if nid is None or k.person:
-                continue
-            try:
-                s.vehicle.setPreviousSpeed(nid, k.speed)
-            except self._exc:
-                pass
-        if self._ctx_anchor is not None:   # refresh: the step's results predate the speeds
-            self._subscribe_context(self._ctx_anchor, self._ctx_radius)
+        self._set_carried_speeds(ahead, mapping)
         log.info("swap_network: %s, kept %d of %d actors within %.0f m (in the loop's step)", self.net_file.name,
                  len(mapping), len(ahead), carry["keep_radius"])
         return mapping

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import os
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -196,10 +197,13 @@ def test_swap_to_a_network_started_ahead(net, routes, tmp_path):
         assert remote._proc.pid != first and remote.preparing is None
         assert remote.route_files == [p for p in map(type(remote.route_files[0]), other)]
         assert remote._generation == 1
-        for _ in range(50):                 # the old worker is collected as the run goes on
+        # the old worker is collected as the run goes on (it closes SUMO at the lowest CPU
+        # priority: on a busy machine that takes a while)
+        for _ in range(600):
             remote.step()
             if first not in live_workers():
                 break
+            time.sleep(0.01)
         assert first not in live_workers()
     finally:
         remote.teardown()
