@@ -23,8 +23,8 @@ import logging
 import math
 import random
 import time
-from pathlib import Path
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -131,8 +131,9 @@ class Simulation:
         self._pipelined = False            # SUMO in a worker process (cosim.sumo_process)
         self._restart_notes: list = []
         self._replan_pending = False       # a swap came in a junction: re-plan after it
-        # a SUMO network swap in two frames (SUMO in its worker): (net, routes, plan, phases)
-        # to start at the next frame's start, then the plan to take once SUMO has adopted
+        # a SUMO network swap over two frames (SUMO in its worker, see swap_traffic): (net,
+        # routes, plan) to start at the next frame's start, then (plan, net) to take once the
+        # new SUMO has the actors
         self._swap_next = None
         self._swap_adopting = None
         self._swap_hold = 0                # frames left without reloading stale tiles
@@ -533,9 +534,7 @@ class Simulation:
         mapping = self.traffic.swap_network(net_file, routes, keep_radius=self.cfg.mirror_radius_m)
         self._routes = list(routes)          # what SUMO restarts on, should its worker crash
         t1 = time.perf_counter()
-        self.mirror.rekey(mapping)
-        self.replan(plan)
-        log.info("SUMO swapped to %s, %d actors kept", Path(net_file).parent.parent.name, len(mapping))
+        self._swap_taken(mapping, plan, net_file)
         return {"sumo": round((t1 - t0) * 1000.0, 1), "replan": round((time.perf_counter() - t1) * 1000.0, 1)}
 
     def _swap_start(self, pose) -> bool:
@@ -553,10 +552,13 @@ class Simulation:
     def _swap_adopted(self):
         t0 = time.perf_counter()
         (plan, net_file), self._swap_adopting = self._swap_adopting, None
-        mapping = self.traffic.swap_end()
+        self._swap_taken(self.traffic.swap_end(), plan, net_file)
+        self._swap_note("replan", t0)
+
+    def _swap_taken(self, mapping: dict, plan, net_file):
+        """The carried actors keep their bodies under their new ids; the route is taken."""
         self.mirror.rekey(mapping)
         self.replan(plan)
-        self._swap_note("replan", t0)
         log.info("SUMO swapped to %s, %d actors kept", Path(net_file).parent.parent.name, len(mapping))
 
     def _swap_note(self, phase: str, t0: float):

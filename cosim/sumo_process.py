@@ -298,8 +298,7 @@ class TrafficProcess(Component):
         self._kwargs = dict(kwargs)
         self._proc = None
         self._conn = None
-        self._pending = 0
-        self._tags: collections.deque = collections.deque()   # one per request in flight
+        self._inflight: collections.deque = collections.deque()   # a tag per request in flight
         self._adopted = None     # swap_begin's answer (old id -> new id), for swap_end
         self._state: dict = {"running": False, "_generation": 0}
         self._kinds: dict = {}
@@ -340,8 +339,7 @@ class TrafficProcess(Component):
         self.discard_prepared()
         proc, conn = self._proc, self._conn
         self._proc = self._conn = None
-        self._pending = 0
-        self._tags.clear()
+        self._inflight.clear()
         self._adopted = None
         if proc is not None:
             _ask_exit(proc, conn)
@@ -369,11 +367,10 @@ class TrafficProcess(Component):
                 except subprocess.TimeoutExpired:
                     self._proc.kill()
             self._proc = None
-            self._pending = 0
-            self._tags.clear()
+            self._inflight.clear()
             raise SimulationError(f"SUMO's worker process ended unexpectedly (exit code {code}); "
                                   "SUMO crashed on this network or scenario") from None
-        tag = self._tags.popleft() if self._tags else None
+        tag = self._inflight.popleft() if self._inflight else None
         self._state.update(state)
         for name, level, msg in records:
             logging.getLogger(name).log(level, "%s", msg)
@@ -389,10 +386,9 @@ class TrafficProcess(Component):
         """Wait for every request in flight (a step, a pose) to be answered; raise the first
         error among them. Returns the last answer (status, value)."""
         out = None
-        if self._pending:
+        if self._inflight:
             self.waits += 1
-        while self._pending:
-            self._pending -= 1
+        while self._inflight:
             out = self._recv()
         return out
 
@@ -404,11 +400,9 @@ class TrafficProcess(Component):
         try:
             self._conn.send(msg)
         except (EOFError, OSError, BrokenPipeError):
-            self._pending = 0
-            self._tags.clear()
+            self._inflight.clear()
             self._recv()   # raises the worker's death as a SimulationError
-        self._pending += 1
-        self._tags.append(tag)
+        self._inflight.append(tag)
 
     def _call(self, path, args, kwargs):
         static = path in _STATIC
@@ -574,7 +568,7 @@ class TrafficProcess(Component):
                    ego_pose: tuple | None = None) -> bool:
         """The swap without waiting for its second half: the actors are captured from this
         SUMO (a few ms), the prepared SUMO takes over, and it inserts them while the caller
-        goes on (``swap_adopt``: two SUMO steps and the inserts). Steps and calls sent after
+        goes on (``swap_adopt``). Steps and calls sent after
         this run after it; ``swap_end()`` gives its answer. Until then, reads under
         ``lagged_reads`` are still answered from the last step of the old network (the frame
         that started it drives on that state). With ``ego_pose`` (x, y, yaw, speed) the insert
@@ -604,9 +598,7 @@ class TrafficProcess(Component):
         self._proc, self._conn = nxt["proc"], nxt["conn"]
         _ask_exit(*old)
         self._retired.append(old)
-        kinds = self._kinds
         self._switched(args)
-        self._kinds = kinds               # (the same SumoTraffic on the other side)
         self._prefetched = last_step
         kw = {} if ego_pose is None else dict(advance=True, ego_pose=tuple(ego_pose))
         if ego_pose is not None:
@@ -623,13 +615,13 @@ class TrafficProcess(Component):
         return mapping if mapping is not None else {}
 
     def _switched(self, args) -> None:
-        """The worker now runs SUMO on another network: nothing read before holds."""
+        """The worker now runs SUMO on another network: nothing read before holds (what
+        kind of attribute each path names does: the same SumoTraffic runs there)."""
         self._args = args
         self.net_file = Path(args[0])
         self.route_files = [Path(p) for p in args[1]]
         self._prefetched = {}
         self._actors_req = None
-        self._kinds = {}
 
     @contextlib.contextmanager
     def lagged_reads(self):

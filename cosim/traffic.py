@@ -1296,11 +1296,12 @@ class SumoTraffic(Component):
 
     def _id_set(self, domain: str) -> set:
         """The ids of this network's edges or lanes (``domain``), read once per network."""
-        cache = self.__dict__.setdefault("_id_sets", {})
-        key = (domain, str(self.net_file))
-        if key not in cache:
-            cache[key] = set(getattr(self._sim, domain).getIDList())
-        return cache[key]
+        cache = self.__dict__.get("_id_sets")
+        if cache is None or cache["net"] != str(self.net_file):     # (only this network's)
+            cache = self._id_sets = {"net": str(self.net_file)}
+        if domain not in cache:
+            cache[domain] = set(getattr(self._sim, domain).getIDList())
+        return cache[domain]
 
     def _edge_set(self) -> set:
         return self._id_set("edge")

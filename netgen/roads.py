@@ -8,11 +8,11 @@ fraction of their length, so the road is level across its width; the lanes of an
 take theirs from the profile of its opposite edge "X" (the same road's other direction) where
 they project onto it, so the two directions meet without a step. Junctions and walking areas
 are triangulated by GEOS's constrained Delaunay triangulation (earcut where a SUMO polygon is
-invalid) with a boundary point every ``step`` metres. A junction's and its walking areas' points
-blend the heights of the ends of the lanes that meet it (weights 1/d^4: at a lane's end exactly
-its height). Crossings are paint (zebra stripes in the marking
-class), each stripe corner on the highest surface (lane, junction, walking area) under it.
-Strips are resampled every ``step`` metres so the surface follows the terrain between SUMO's (often sparse) points.
+invalid) with a boundary point every ``step`` metres. A junction's and its walking areas'
+points blend the heights of the ends of the lanes that meet it (weights 1/d^4: at a lane's end
+exactly its height). Crossings are paint (zebra stripes in the marking class), each stripe
+corner on the highest surface (lane, junction, walking area) under it. Strips are resampled
+every ``step`` metres so the surface follows the terrain between SUMO's (often sparse) points.
 
 Everything is computed on concatenated arrays of all lanes at once (a city has ~10^4 lanes;
 per-lane Python would dominate the build).
@@ -203,11 +203,11 @@ def _top_surface_z(xy, parts, cell: float = 8.0):
     T, det = T[ok], det[ok]
     if not len(T):
         return np.full(len(xy), np.nan)
-    # candidate (point, triangle) pairs: each triangle listed under the grid cells its
-    # bounding box covers, each point looked up in its cell
-    cell = 4.0
-    lo = np.floor(T[:, :, :2].min(axis=1) / cell).astype(np.int64)
-    hi = np.floor(T[:, :, :2].max(axis=1) / cell).astype(np.int64)
+    # candidate (point, triangle) pairs: each triangle listed under the cells of a finer grid
+    # its bounding box covers, each point looked up in its cell
+    fine = cell / 2.0
+    lo = np.floor(T[:, :, :2].min(axis=1) / fine).astype(np.int64)
+    hi = np.floor(T[:, :, :2].max(axis=1) / fine).astype(np.int64)
     nx, ny = hi[:, 0] - lo[:, 0] + 1, hi[:, 1] - lo[:, 1] + 1
     nc = nx * ny
     tri = np.repeat(np.arange(len(T)), nc)
@@ -215,8 +215,7 @@ def _top_surface_z(xy, parts, cell: float = 8.0):
     ckey = ((lo[tri, 0] + k % nx[tri]) << 32) + (lo[tri, 1] + k // nx[tri])
     order = np.argsort(ckey, kind="stable")
     ckey, tri = ckey[order], tri[order]
-    pij = np.floor(xy / cell).astype(np.int64)
-    pkey = (pij[:, 0] << 32) + pij[:, 1]
+    pkey = _cell_keys(xy, fine)
     first, last = np.searchsorted(ckey, pkey, "left"), np.searchsorted(ckey, pkey, "right")
     cnt = last - first
     pi = np.repeat(np.arange(len(xy)), cnt)
@@ -285,7 +284,7 @@ def _open_ring(shape):
     return ring if len(ring) >= 3 else None
 
 
-def _dense_triangulated(shapes, step: float, delaunay: bool = True):
+def _dense_triangulated(shapes, step: float):
     """Polygon shapes as open rings with a point at least every `step` metres (their own
     points kept), triangulated: GEOS's constrained Delaunay triangulation where the ring is a
     valid polygon, else earcut. Returns the points (n, 2), the shape of each point, the
@@ -316,10 +315,8 @@ def _dense_triangulated(shapes, step: float, delaunay: bool = True):
     start = np.cumsum(dlen - 1) - (dlen - 1)
     done = np.zeros(len(idx), dtype=bool)
     F, FG = [np.zeros((0, 3), np.int64)], [np.zeros(0, np.int64)]
-    valid = []
-    if delaunay:
-        polys = shapely.polygons(shapely.linearrings(D, indices=dg))
-        valid = np.nonzero(shapely.is_valid(polys))[0]
+    polys = shapely.polygons(shapely.linearrings(D, indices=dg))
+    valid = np.nonzero(shapely.is_valid(polys))[0]
     if len(valid):
         C, owner = shapely.get_coordinates(shapely.constrained_delaunay_triangles(polys[valid]),
                                            return_index=True)
@@ -467,9 +464,10 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
 
     # A junction's points take their heights from the ends of the lanes that meet there,
     # weighted by 1/d^4: at a lane's end exactly its height, in between a smooth blend (1/d^2
-    # left steps of 0.1 m at twice as many lane ends). (The nearest lane of any road took one from a road passing by: a tunnel
-    # under a Monaco junction, a parallel street up the hill; the nearest lane end alone
-    # changed in steps along the boundary, and the junction folded between them.)
+    # left steps of 0.1 m at twice as many lane ends). (The nearest lane of any road took one
+    # from a road passing by: a tunnel under a Monaco junction, a parallel street up the
+    # hill; the nearest lane end alone changed in steps along the boundary, and the junction
+    # folded between them.)
     first = np.r_[0, np.nonzero(cg[1:] != cg[:-1])[0] + 1]
     last = np.r_[first[1:] - 1, len(cg) - 1]
     node_num: dict = {}
@@ -480,7 +478,6 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     EP = np.vstack([C[ends], C[ends] + nrm[ends], C[ends] - nrm[ends]])   # (centres and corners)
     EZ = np.tile(cz[ends], 3)
     EN = np.tile(end_node, 3)
-
     etree = cKDTree(EP)
 
     def zfun_at(xy, junction_ids, of):
@@ -498,8 +495,8 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
             z[none] = zfun(xy[none])
         return z
 
-    # 3. junctions, walking areas: polygons (earcut) with heights from the lanes; the
-    # junctions first (they complete the levelling support)
+    # 3. junctions, walking areas: polygons (constrained Delaunay) with heights from the lane
+    # ends; the junctions first (they complete the levelling support)
     polys, pkind, pid, pel = [], [], [], []
     for j in net.junctions.values():
         if j.type != "internal" and len(j.shape) >= 3:
@@ -510,8 +507,6 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
             polys.append(e.lanes[0].shape); pkind.append("sidewalk"); pid.append(e.id); pel.append("walkingarea")
         elif e.function == "crossing" and e.lanes and len(e.lanes[0].shape) >= 2:
             crossings.append(e)
-    jpolys = []
-
     def polygon_part(kind):
         cand = [k for k in range(len(polys)) if pkind[k] == kind]
         V2, vg, F, fg = _dense_triangulated([polys[k] for k in cand], step)
@@ -522,8 +517,6 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
         remap = -np.ones(len(cand), dtype=np.int64)
         remap[keep_c] = np.arange(len(keep_c))
         FG = remap[fg]
-        if kind == "asphalt":
-            jpolys.extend(range(len(keep)))
         # (a walking area ":J_w0" lies around junction J, and overlaps its lanes' ends too)
         owner = [pid[k] if kind == "asphalt" else pid[k][1:pid[k].rfind("_w")] for k in keep]
         Z = zfun_at(V2, owner, remap[vg])           # (points of shapes left out: -1, unused)
@@ -604,7 +597,8 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
         parts["marking"].append(_part("marking", v, f, fg, len(crossings), [e.id for e in crossings],
                                       ["zebra"] * len(crossings), [()] * len(crossings), xcent))
     geo.parts = {k: v for k, v in parts.items() if v}
-    geo.stats = {"lanes_meshed": len(lanes), "junctions_meshed": len(jpolys),
+    geo.stats = {"lanes_meshed": len(lanes),
+                 "junctions_meshed": len(junction_part.ids) if junction_part is not None else 0,
                  "walkingareas_meshed": sum(1 for e in pel if e == "walkingarea"),
                  "crossings_meshed": len(crossings),
                  "faces": int(sum(len(p.faces) for ps in geo.parts.values() for p in ps))}

@@ -2,6 +2,7 @@
 terrain against the DEM, buildings on the terrain, caching, bad input and killed builds."""
 from __future__ import annotations
 
+import functools
 import json
 import os
 import signal
@@ -402,18 +403,24 @@ def _check_lanes_meet_junctions(out: Path, w: dict):
     assert (step > 0.1).mean() < 0.06, np.percentile(step, [50, 95, 99])
 
 
+@functools.lru_cache(maxsize=2)
+def _layer_mesh(path: str, layers: tuple):
+    """All tiles of `layers` of the world at `path` as one mesh (loaded once for the checks
+    that cast rays through it)."""
+    import trimesh
+
+    from cosim.world import World
+
+    world = World(Path(path))
+    files = [c["_base"] / f for c in world.chunks.values() for t in c.get("tiles", {}).values()
+             for layer, f in t.items() if layer in layers]
+    return trimesh.util.concatenate([trimesh.load(f, force="mesh") for f in files])
+
+
 def _surface_heights(world, xy: np.ndarray, layers=("asphalt",)) -> list:
     """Every surface of `layers` (sorted, top last) over each point of `xy`, by ray casts down
     through the world's tiles."""
-    import trimesh
-
-    meshes = []
-    for key in {k for p in xy for k in world.tiles_within(p[0], p[1], 5.0)}:
-        for layer in layers:
-            f = world.tile_files(key).get(layer)
-            if f is not None:
-                meshes.append(trimesh.load(f, force="mesh"))
-    mesh = trimesh.util.concatenate(meshes)
+    mesh = _layer_mesh(str(world.path), tuple(layers))
     origins = np.column_stack([xy, np.full(len(xy), 5000.0)])
     loc, ray, _ = mesh.ray.intersects_location(origins, np.tile([0.0, 0.0, -1.0], (len(xy), 1)))
     out = [[] for _ in xy]
