@@ -21,7 +21,6 @@ while in the build it shares it with the build's own work, so the build's CPU ti
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import resource
 import shutil

@@ -141,7 +141,6 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
     reroutes = 0
     blocked_since = None
     settled = False
-    prev = None
     wall0 = time.perf_counter()
     try:
         n = int(round(duration / cfg.step_length_s))

@@ -360,7 +360,8 @@ class Autopilot:
             o = float(off[j])
             inside = abs(o) <= hw
             crossing = person or abs(math.cos(dyaw)) < 0.7
-            if abs(o) > hw + 12.0:
+            # (a crossing vehicle is watched from as far as it covers in 4 s sideways)
+            if abs(o) > hw + max(12.0, 4.0 * abs(sp * math.sin(dyaw)) if crossing else 12.0):
                 continue
             if not person and tr is not None:
                 # SUMO's lanes say which vehicles can meet the ego: those on the path's lanes
@@ -380,10 +381,14 @@ class Autopilot:
                         lane = None
                 if lane:
                     on_path = lane in mine or lane.rsplit("_", 1)[0] in my_edges
-                    if lane in foes and not on_path:
-                        crossing = True
-                    elif not on_path:
-                        continue
+                    if not on_path:
+                        if lane in foes:
+                            crossing = True
+                        elif not crossing:
+                            continue    # parallel or oncoming, in its own lanes
+                        # (else a vehicle crossing the path on a lane SUMO does not make a foe:
+                        # a road that SUMO's network takes over or under the path, which this
+                        # world, draped on the terrain, has at grade; the timing below decides)
                     elif not inside:
                         continue
                 elif not inside:

@@ -115,6 +115,7 @@ class Simulation:
         self.t = 0.0
         self.summary = Summary()
         self._frame_ms: list = []
+        self.last_tiles_ms = 0.0           # this frame's tile loading and unloading (physics.update)
         self._wall0 = None
         self._path_idx = 0
         self._last_xy = None
@@ -396,7 +397,9 @@ class Simulation:
             self.replan()                   # after a swap in a junction: now on the lane after it
         # (tiles of chunks a new window replaced are reloaded later, not in the frames that
         # carry the SUMO swap: they are loaded, only older)
+        t_tiles = time.perf_counter()
         self.physics.update(st.x, st.y, self.keep_radius, stale=not self._swap_hold)
+        self.last_tiles_ms = (time.perf_counter() - t_tiles) * 1000.0
         self._swap_hold = max(0, self._swap_hold - 1)
         self.streamer.step(st.x, st.y)
         if not self._covered(st.x, st.y):

@@ -181,6 +181,7 @@ class TrafficStats:
     collisions: int = 0        # accumulated distinct collisions (collider, victim)
     max_vehicles: int = 0
     max_persons: int = 0
+    swap_dropped: int = 0      # carried persons a swap had to drop (see _drop_stranded_persons)
     _seen_collisions: set = field(default_factory=set, repr=False)
 
 
@@ -1059,6 +1060,7 @@ class SumoTraffic(Component):
         # walking (~0.15 m) ahead.
         self._time_offset = carry["t_before"] - s.simulation.getTime() - 2 * self.step_length
         self.step()
+        self._drop_stranded_persons(mapping)
         for k in kept:
             nid = mapping.get(k.old_id)
             if nid is None:
@@ -1077,6 +1079,33 @@ class SumoTraffic(Component):
         log.info("swap_network: %s, kept %d of %d actors within %.0f m", self.net_file.name,
                  len(mapping), len(kept), carry["keep_radius"])
         return mapping
+
+    def _drop_stranded_persons(self, mapping: dict) -> None:
+        """After the step that applied the carried persons' moveToXY: a person SUMO mapped onto
+        a crossing or walking area off its route gets a walk of internal edges only (SUMO
+        replaces the walk with the edges around the lane it matched), and SUMO 1.28 crashes
+        (a segfault) when that walk ends, some steps later. Such a person is removed at once,
+        dropped from ``mapping`` and counted in ``stats.swap_dropped``: one pedestrian gone beats
+        the traffic gone."""
+        s = self._sim
+        persons = None
+        for old, nid in list(mapping.items()):
+            if persons is None:
+                persons = set(s.person.getIDList())
+            if nid not in persons:
+                continue
+            try:
+                edges = s.person.getStage(nid).edges
+                if not edges or not all(e.startswith(":") for e in edges):
+                    continue
+                road = s.person.getRoadID(nid)
+                s.person.remove(nid)
+            except self._exc:
+                continue
+            del mapping[old]
+            self.stats.swap_dropped += 1
+            log.info("swap: %s dropped: SUMO matched it onto %s with a walk of internal edges only %s",
+                     old, road, tuple(edges))
 
     def _set_carried_speeds(self, kept: list, mapping: dict) -> None:
         """After the swap's last step: the carried vehicles' speeds as captured (the step
@@ -1142,6 +1171,7 @@ class SumoTraffic(Component):
         # after the capture
         self._time_offset = carry["t_before"] - s.simulation.getTime()
         self.step()
+        self._drop_stranded_persons(mapping)
         self._set_carried_speeds(ahead, mapping)
         log.info("swap_network: %s, kept %d of %d actors within %.0f m (in the loop's step)", self.net_file.name,
                  len(mapping), len(ahead), carry["keep_radius"])

@@ -97,6 +97,11 @@ def test_drive_across_a_chunk_border_with_traffic(motorway_world, tmp_path, para
     assert summary.sensor_range_violations == 0
     assert summary.ego_collisions == 0, sim.collision_log
     assert summary.max_vehicles > 5
+    # on the motorway preset only about half of the random pedestrian pairs connect: a second
+    # round of sampling tops the first up to what the density asks
+    metas = [json.loads(f.read_text()) for f in (motorway_world / "traffic").glob("demand-*/demand.json")]
+    peds = [m["trips"]["persons"] for m in metas if m["trips"].get("persons")]
+    assert peds and all(p["rounds"] == 2 and p["routed"] >= 0.9 * p["wanted"] for p in peds), peds
     rows = [json.loads(l) for l in tel.read_text().splitlines()]
     assert len(rows) == 700
     assert TELEMETRY_FIELDS <= set(rows[0])

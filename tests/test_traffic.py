@@ -131,6 +131,12 @@ def test_demand_repeatable_and_seeded(helsinki_net, tmp_path):
     c = generate_demand(helsinki_net, tmp_path / "a", "light", seed=8, duration=90)
     assert not a.cached and not b.cached and a.folder != c.folder
     assert a.n_vehicles > 0 and a.n_persons > 0
+    # randomTrips samples 1.5 x the trips wanted, duarouter routes them once, and a seeded
+    # draw keeps the wanted number (on Helsinki 85-90 % of random pairs can be routed)
+    for kind in ("vehicles", "persons"):
+        info = a.meta["trips"][kind]
+        assert info["wanted"] == round(info["sampled"] / 1.5) and info["routed"] >= info["wanted"], info
+    assert a.meta["trips"]["vehicles"]["rounds"] == 1
     assert sha(a.vehicles_file) == sha(b.vehicles_file)
     assert sha(a.persons_file) == sha(b.persons_file)
     assert sha(a.vehicles_file) != sha(c.vehicles_file)
@@ -467,8 +473,14 @@ def test_swap_network_keeps_actors_near_ego(helsinki_net, dense, traffic):
     after = t.actors_near(cx, cy, 120.0)
     moved = []
     persons_to_check = []
+    # a person SUMO would strand on a crossing (a walk of internal edges only, which crashes
+    # SUMO when it ends) is dropped and counted; everything else is carried
+    missing = [old for old in before.ids if old not in mapping]
+    assert len(missing) == t.stats.swap_dropped <= 1, (missing, t.stats.swap_dropped)
+    assert all(before.kind[before.index(old)] == "person" for old in missing)
     for i, old in enumerate(before.ids):
-        assert old in mapping, f"{old} was not carried over"
+        if old in missing:
+            continue
         j = after.index(mapping[old])
         d = math.hypot(after.x[j] - before.x[i], after.y[j] - before.y[i])
         dv = abs(after.speed[j] - before.speed[i])
@@ -482,7 +494,7 @@ def test_swap_network_keeps_actors_near_ego(helsinki_net, dense, traffic):
             persons_to_check.append((mapping[old], before.speed[i]))
         assert after.kind[j] == before.kind[i]
         assert after.length[j] == pytest.approx(before.length[i])
-    print(f"swap kept {len(mapping)} actors; max position error "
+    print(f"swap kept {len(mapping)} actors (dropped {missing}); max position error "
           f"{max(m[0] for m in moved):.3f} m, max speed error {max(m[1] for m in moved):.3f} m/s",
           max(moved, key=lambda m: m[1]))
     ego = t.ego_state()
