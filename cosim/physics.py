@@ -3,7 +3,9 @@
 Tiles (250 m squares of a chunk) are the unit of streaming: each brings a terrain
 heightfield cut from its chunk's grid, the merged road, sidewalk and building meshes of the
 tile (static concave triangle meshes), lane markings (visual only), and the scenery
-instances standing in it (trees, poles, benches as light collision primitives).
+instances standing in it (the colliders of its trees, poles, signs and benches merged into one
+triangle mesh). A tile is loaded a part at a time (terrain, each mesh class, scenery) within a
+per-frame time budget (``update``), so that no frame pays for a whole tile.
 
 PyBullet does not free a mesh's memory when a body is removed, so shapes are pooled: a
 tile's collision and visual shapes are created once per file and reused whenever the tile
@@ -32,6 +34,44 @@ PREFAB_COLOURS = {"tree": (0.20, 0.45, 0.18, 1), "street_lamp": (0.35, 0.36, 0.3
                   "give_way_sign": (0.95, 0.95, 0.95, 1), "bench": (0.45, 0.30, 0.18, 1)}
 
 
+_SIDES = 12     # a cylinder collider's prism
+
+
+def _colliders_mesh(cols, frames) -> tuple[np.ndarray, np.ndarray]:
+    """One triangle mesh (vertices, faces) of primitive colliders: ``cols`` as in
+    ``_load_prefabs`` (type, radius, half extents, height, offset), ``frames`` (position,
+    yaw quaternion) of each. Cylinders (z axis) become closed prisms of _SIDES sides with a
+    centre vertex on each cap, boxes closed boxes turned by their yaw."""
+    a = np.linspace(0.0, 2.0 * np.pi, _SIDES, endpoint=False)
+    ring = np.column_stack([np.cos(a), np.sin(a)])
+    k = np.arange(_SIDES)
+    k1 = (k + 1) % _SIDES
+    # cylinder: 0.._SIDES-1 bottom ring, _SIDES..2*_SIDES-1 top ring, 2S bottom centre, 2S+1 top
+    cyl_f = np.concatenate([np.column_stack([k, k1, _SIDES + k1]), np.column_stack([k, _SIDES + k1, _SIDES + k]),
+                            np.column_stack([np.full(_SIDES, 2 * _SIDES), k1, k]),
+                            np.column_stack([np.full(_SIDES, 2 * _SIDES + 1), _SIDES + k, _SIDES + k1])])
+    box_v = np.array([[x, y, z] for z in (-1, 1) for y in (-1, 1) for x in (-1, 1)], float)
+    box_f = np.array([[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4],
+                      [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]])
+    Vs, Fs, n = [], [], 0
+    for col, (pos, q) in zip(cols, frames):
+        if col[0] == pb.GEOM_CYLINDER:
+            r, h = col[1], col[3]
+            v = np.vstack([np.column_stack([ring * r, np.full(_SIDES, -h / 2)]),
+                           np.column_stack([ring * r, np.full(_SIDES, h / 2)]), [[0, 0, -h / 2], [0, 0, h / 2]]])
+            f = cyl_f
+        else:
+            yaw = 2.0 * math.atan2(q[2], q[3])
+            cy, sy = math.cos(yaw), math.sin(yaw)
+            v = box_v * np.asarray(col[2], float)
+            v = np.column_stack([v[:, 0] * cy - v[:, 1] * sy, v[:, 0] * sy + v[:, 1] * cy, v[:, 2]])
+            f = box_f
+        Vs.append(v + np.asarray(pos, float))
+        Fs.append(f + n)
+        n += len(v)
+    return np.vstack(Vs), np.vstack(Fs)
+
+
 @dataclass
 class TileBodies:
     bodies: list = field(default_factory=list)
@@ -53,6 +93,7 @@ class PhysicsWorld:
         self.client = None
         self.tiles: dict = {}
         self._stale: set = set()          # loaded tiles a newer window replaced (refresh)
+        self._loading: dict = {}          # tile -> (TileBodies, its parts still to make): being loaded
         self._shape_pool: dict = {}       # (file, collide) -> (collision id, visual id)
         self._prefabs: dict = {}
         self._chunk_visuals: dict = {}    # chunk -> (body, refcount)
@@ -92,34 +133,59 @@ class PhysicsWorld:
                 pass
             self.client = None
         self.tiles.clear()
+        self._loading.clear()
         self._shape_pool.clear()
         self._chunk_visuals.clear()
 
     # --- streaming ------------------------------------------------------------------------
     def update(self, x: float, y: float, keep_radius: float, unload_radius: float | None = None,
                budget_ms: float | None = None, stale: bool = True) -> dict:
-        """Load tiles within keep_radius (nearest first, within a time budget), unload those
-        beyond unload_radius (hysteresis); with ``stale`` False, stale tiles (see ``refresh``)
-        wait. Returns counts of what happened."""
+        """Load tiles within keep_radius, nearest first, a part at a time (the terrain, each
+        mesh class, the scenery: see ``_tile_parts``) until the time budget is spent (at least
+        one part a call), so that a tile's load is spread over frames; a tile counts as
+        loaded (``tiles``, ``covered``) once all its parts are in. Unload those beyond
+        unload_radius (hysteresis). With ``stale`` False, stale tiles (see ``refresh``) wait.
+        Returns counts of what happened."""
         unload_radius = unload_radius or keep_radius + self.world.tile_size
         budget = self.load_budget_ms if budget_ms is None else budget_ms
         want = [k for k in self.world.tiles_within(x, y, keep_radius) if self.world.is_built(k)]
         t0 = time.perf_counter()
-        loaded = 0
+        loaded = parts = 0
         for k in want:
             if k in self.tiles and (k not in self._stale or not stale):
                 continue
-            if loaded and (time.perf_counter() - t0) * 1000.0 > budget:
+            if parts and (time.perf_counter() - t0) * 1000.0 > budget:
                 break
             if k in self._stale:          # replaced in one go: the sensors never see a hole
                 self.unload_tile(k)
-            self.load_tile(k)
-            loaded += 1
+                self.load_tile(k)
+                loaded += 1
+                parts += 1
+                continue
+            # a new tile, a part at a time (terrain, each mesh class, scenery) within the budget
+            job = self._loading.get(k)
+            if job is None:
+                job = self._loading[k] = self._start_tile(k)
+            done = False
+            while True:
+                try:
+                    next(job[1])
+                except StopIteration:
+                    done = True
+                parts += 1
+                if done or (time.perf_counter() - t0) * 1000.0 > budget:
+                    break
+            if done:
+                del self._loading[k]
+                self._finish_tile(k, job[0])
+                loaded += 1
         keep = set(self.world.tiles_within(x, y, unload_radius))
         unloaded = 0
         for k in [k for k in self.tiles if k not in keep]:
             self.unload_tile(k)
             unloaded += 1
+        for k in [k for k in self._loading if k not in keep]:
+            self._drop_loading(k)
         return {"loaded": loaded, "unloaded": unloaded,
                 "pending": sum(1 for k in want if k not in self.tiles or k in self._stale)}
 
@@ -133,6 +199,8 @@ class PhysicsWorld:
         old one) nearest first, within its time budget, like any other load. Returns how many
         tiles became stale."""
         chunks = set(chunks)
+        for k in [k for k in self._loading if (k[0], k[1]) in chunks]:
+            self._drop_loading(k)         # (half made from the old build: begun anew)
         stale = {k for k in self.tiles if (k[0], k[1]) in chunks}
         self._stale |= stale
         for ij in chunks & set(self._chunk_visuals):      # visual only: redrawn from the new build
@@ -143,9 +211,27 @@ class PhysicsWorld:
         return len(stale)
 
     def load_tile(self, key):
-        t0 = time.perf_counter()
-        c = self.client
+        """Load a tile at once (all its parts); returns its TileBodies."""
+        job = self._loading.pop(key, None) or self._start_tile(key)
+        for _ in job[1]:
+            pass
+        return self._finish_tile(key, job[0])
+
+    def _start_tile(self, key):
         tb = TileBodies()
+        return tb, self._tile_parts(key, tb)
+
+    def _finish_tile(self, key, tb):
+        self.load_times_ms.append(tb.load_ms)
+        self.tiles[key] = tb
+        self.loads += 1
+        return tb
+
+    def _tile_parts(self, key, tb):
+        """A tile's bodies, one part per iteration (the terrain, each mesh class, the
+        scenery), so that ``update`` can spread a tile over frames; ``tb.load_ms`` sums them."""
+        c = self.client
+        t0 = time.perf_counter()
         g = self.world.tile_terrain(key)
         if g is not None:
             sh, base = self._heightfield(g)
@@ -156,22 +242,36 @@ class PhysicsWorld:
             tb.hf_shape = sh
             tb.bodies.append(b)
             tb.kinds.append("terrain")
+        tb.load_ms += (time.perf_counter() - t0) * 1000.0
+        yield
         for kind, f in self.world.tile_files(key).items():
             collide = kind in COLLIDE
             if not collide and not self.visuals:
                 continue
+            t0 = time.perf_counter()
             col, vis = self._shapes(f, kind, collide)
             b = pb.createMultiBody(0, col, vis, [0, 0, 0], useMaximalCoordinates=True, physicsClientId=c)
             tb.bodies.append(b)
             tb.kinds.append(kind)
+            tb.load_ms += (time.perf_counter() - t0) * 1000.0
+            yield
+        t0 = time.perf_counter()
         tb.bodies.extend(self._scenery_bodies(key))
         if self.visuals:
             self._chunk_visual_ref((key[0], key[1]), +1)
-        tb.load_ms = (time.perf_counter() - t0) * 1000.0
-        self.load_times_ms.append(tb.load_ms)
-        self.tiles[key] = tb
-        self.loads += 1
-        return tb
+        tb.load_ms += (time.perf_counter() - t0) * 1000.0
+
+    def _drop_loading(self, key) -> None:
+        """Remove what a tile still being loaded has made so far."""
+        job = self._loading.pop(key, None)
+        if job is None:
+            return
+        tb, parts = job
+        parts.close()
+        for b in tb.bodies:
+            pb.removeBody(b, physicsClientId=self.client)
+        if tb.hf_shape >= 0:
+            self._hf_free.setdefault(self._hf_key_of[tb.hf_shape], []).append(tb.hf_shape)
 
     def unload_tile(self, key):
         self._stale.discard(key)
@@ -267,11 +367,14 @@ class PhysicsWorld:
             self._prefabs[kind] = (cs, None, m["file"])
 
     def _scenery_bodies(self, key) -> list:
-        """The tile's scenery (trees, lamps, signals, signs, benches) as a few static bodies,
-        each a compound of up to COMPOUND_MAX items' colliders (PyBullet's limit per shape
-        array). Bullet's step costs about 0.6 us per body: one body per item (hundreds per
-        tile) cost more than the rest of the world together. With visuals on, each kind's
-        meshes are merged the same way into visual-only bodies."""
+        """The tile's scenery (trees, lamps, signals, signs, benches) as one static body: the
+        items' colliders (prefabs.json's cylinders and boxes, as 12-sided prisms and boxes)
+        merged into one triangle mesh. Bullet's step costs about 0.6 us per body, so one body
+        per item (hundreds per tile) cost more than the rest of the world together; and
+        PyBullet takes about 0.25 ms per child to create a compound body, so compounds of 16
+        primitives cost 20-45 ms per tile, where the mesh takes 1-3 ms (and a pooled one well
+        under 1 ms). With visuals on, each kind's meshes are merged into visual-only bodies of
+        up to COMPOUND_MAX (PyBullet's limit per shape array)."""
         inst = self.world.scenery((key[0], key[1]))
         if not inst:
             return []
@@ -289,19 +392,14 @@ class PhysicsWorld:
                     [0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
 
         bodies = []
-        for n0 in range(0, len(items), COMPOUND_MAX):
-            part = items[n0:n0 + COMPOUND_MAX]
-            cs = self._shape_pool.get(("scenery-compound", key, n0))
-            if cs is None:
-                cols = [self._prefabs[s["kind"]][0] for s in part]
-                frames = [frame(s, col[4]) for s, col in zip(part, cols)]
-                cs = pb.createCollisionShapeArray(
-                    shapeTypes=[col[0] for col in cols], radii=[col[1] for col in cols],
-                    halfExtents=[col[2] for col in cols], lengths=[col[3] for col in cols],
-                    collisionFramePositions=[f[0] for f in frames], collisionFrameOrientations=[f[1] for f in frames],
-                    physicsClientId=c)
-                self._shape_pool[("scenery-compound", key, n0)] = cs
-            bodies.append(pb.createMultiBody(0, cs, -1, [ox, oy, 0.0], useMaximalCoordinates=True, physicsClientId=c))
+        cs = self._shape_pool.get(("scenery-mesh", key))
+        if cs is None:
+            V, F = _colliders_mesh([self._prefabs[s["kind"]][0] for s in items],
+                                   [frame(s, self._prefabs[s["kind"]][0][4]) for s in items])
+            cs = pb.createCollisionShape(pb.GEOM_MESH, vertices=V.tolist(), indices=F.ravel().tolist(),
+                                         flags=pb.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=c)
+            self._shape_pool[("scenery-mesh", key)] = cs
+        bodies.append(pb.createMultiBody(0, cs, -1, [ox, oy, 0.0], useMaximalCoordinates=True, physicsClientId=c))
         if self.visuals:
             by_kind: dict = {}
             for s in items:

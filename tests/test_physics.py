@@ -107,3 +107,40 @@ def test_scenery_colliders_are_one_body_per_tile(monaco_world):
         assert max(tops) < 0.02          # at the collider's top: placed where prefabs.json says
     finally:
         pw.teardown()
+
+
+def test_tiles_load_a_part_at_a_time_within_the_budget(monaco_world):
+    """With a budget smaller than a tile, ``update`` makes one part of a tile per call (the
+    terrain, each mesh class, the scenery); a tile counts as loaded, and ``covered``, only
+    once all its parts are in, and it ends with the same bodies as a tile loaded at once."""
+    w = monaco_world
+    whole = PhysicsWorld(w).setup()
+    part = PhysicsWorld(w).setup()
+    try:
+        key = next(k for k in w.tiles_within(0.0, 0.0, 10.0) if w.is_built(k))
+        xmin, ymin, xmax, ymax = w.tile_bounds(key)
+        kx, ky = (xmin + xmax) / 2, (ymin + ymax) / 2          # (a disc inside that one tile)
+        kinds_whole = whole.load_tile(key).kinds
+        n_parts = 1 + sum(1 for kind in w.tile_files(key) if kind in ("asphalt", "sidewalk", "building", "rail")) + 1
+        calls = 0
+        while key not in part.tiles:
+            r = part.update(kx, ky, 10.0, budget_ms=0.0)    # one part per call
+            calls += 1
+            if key not in part.tiles:
+                assert r["loaded"] == 0 and not part.covered(kx, ky, 5.0)
+            assert calls <= 50
+        assert calls >= n_parts - 1 and part.covered(kx, ky, 5.0)
+        tb = part.tiles[key]
+        assert tb.kinds == kinds_whole and len(tb.bodies) == len(whole.tiles[key].bodies)
+        # a tile that leaves the window half made leaves no body behind
+        other = next(k for k in w.tiles_within(0.0, 0.0, 600.0) if w.is_built(k) and k not in part.tiles)
+        xmin, ymin, xmax, ymax = w.tile_bounds(other)
+        cx, cy = (xmin + xmax) / 2, (ymin + ymax) / 2
+        n0 = pb.getNumBodies(physicsClientId=part.client)
+        part.update(cx, cy, 1.0, unload_radius=2000.0, budget_ms=0.0)
+        assert other in part._loading and pb.getNumBodies(physicsClientId=part.client) > n0
+        part.update(5000.0, 5000.0, 1.0, unload_radius=10.0, budget_ms=0.0)
+        assert not part._loading and not part.tiles and pb.getNumBodies(physicsClientId=part.client) == 0
+    finally:
+        whole.teardown()
+        part.teardown()
