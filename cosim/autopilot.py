@@ -360,8 +360,9 @@ class Autopilot:
             o = float(off[j])
             inside = abs(o) <= hw
             crossing = person or abs(math.cos(dyaw)) < 0.7
-            # (a crossing vehicle is watched from as far as it covers in 4 s sideways)
-            if abs(o) > hw + max(12.0, 4.0 * abs(sp * math.sin(dyaw)) if crossing else 12.0):
+            # (a crossing actor is watched from as far as it covers in 4 s sideways)
+            reach = max(12.0, 4.0 * abs(sp * math.sin(dyaw))) if crossing else 12.0
+            if abs(o) > hw + reach:
                 continue
             if not person and tr is not None:
                 # SUMO's lanes say which vehicles can meet the ego: those on the path's lanes

@@ -295,7 +295,7 @@ def generate_demand(net_file, out_dir, density="normal", seed: int = 0,
             if res is None:
                 continue
             (routes,), sampled = res
-            routed = _count_routed(routes, "person" if name == "ped" else "vehicle")
+            routed = _count_tag(routes, "person" if name == "ped" else "vehicle")
             wanted = round(sampled / OVERSAMPLE)
             if 0 < routed < wanted:
                 persons = name == "ped"
@@ -422,9 +422,7 @@ def _wait_random_trips(job, net_file: Path, timeout: float) -> tuple[Path, int]:
     if proc.returncode != 0 or not routes.is_file():
         msg = _last_error_line(stderr) or f"exit code {proc.returncode}"
         raise BuildError(f"randomTrips ({what}) failed on {net_file.name}: {msg}")
-    tag = "person" if what == "pedestrians" else "trip"
-    sampled = sum(1 for _, el in ET.iterparse(str(trips)) if el.tag == tag)
-    return routes, sampled
+    return routes, _count_tag(trips, "person" if what == "pedestrians" else "trip")
 
 
 def _last_error_line(text: str) -> str:
@@ -463,8 +461,9 @@ def _vtypes_body(persons: bool) -> str:
     return xml.split("\n", 1)[1].rsplit("</additional>", 1)[0]
 
 
-def _count_routed(routes: Path, tag: str) -> int:
-    return sum(1 for _, el in ET.iterparse(str(routes)) if el.tag == tag)
+def _count_tag(xml: Path, tag: str) -> int:
+    """How many ``tag`` elements a trips or routes file holds."""
+    return sum(1 for _, el in ET.iterparse(str(xml)) if el.tag == tag)
 
 
 def _finish_routes(raws: list, sampled: int, out: Path, lengths: dict[str, float], fill_s: float,

@@ -35,6 +35,7 @@ PREFAB_COLOURS = {"tree": (0.20, 0.45, 0.18, 1), "street_lamp": (0.35, 0.36, 0.3
 
 
 _SIDES = 12     # a cylinder collider's prism
+_DONE = object()  # (a tile's parts are all made)
 
 
 def _colliders_mesh(cols, frames) -> tuple[np.ndarray, np.ndarray]:
@@ -166,12 +167,8 @@ class PhysicsWorld:
             job = self._loading.get(k)
             if job is None:
                 job = self._loading[k] = self._start_tile(k)
-            done = False
             while True:
-                try:
-                    next(job[1])
-                except StopIteration:
-                    done = True
+                done = next(job[1], _DONE) is _DONE
                 parts += 1
                 if done or (time.perf_counter() - t0) * 1000.0 > budget:
                     break
@@ -266,8 +263,11 @@ class PhysicsWorld:
         job = self._loading.pop(key, None)
         if job is None:
             return
-        tb, parts = job
-        parts.close()
+        job[1].close()
+        self._remove_bodies(job[0])
+
+    def _remove_bodies(self, tb) -> None:
+        """Remove a tile's bodies; its heightfield shape goes back to the pool."""
         for b in tb.bodies:
             pb.removeBody(b, physicsClientId=self.client)
         if tb.hf_shape >= 0:
@@ -278,11 +278,7 @@ class PhysicsWorld:
         tb = self.tiles.pop(key, None)
         if tb is None:
             return
-        c = self.client
-        for b in tb.bodies:
-            pb.removeBody(b, physicsClientId=c)
-        if tb.hf_shape >= 0:
-            self._hf_free.setdefault(self._hf_key_of[tb.hf_shape], []).append(tb.hf_shape)
+        self._remove_bodies(tb)
         if self.visuals:
             self._chunk_visual_ref((key[0], key[1]), -1)
         self.unloads += 1

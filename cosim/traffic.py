@@ -1087,11 +1087,11 @@ class SumoTraffic(Component):
         (a segfault) when that walk ends, some steps later. Such a person is removed at once,
         dropped from ``mapping`` and counted in ``stats.swap_dropped``: one pedestrian gone beats
         the traffic gone."""
+        if not mapping:
+            return
         s = self._sim
-        persons = None
+        persons = set(s.person.getIDList())
         for old, nid in list(mapping.items()):
-            if persons is None:
-                persons = set(s.person.getIDList())
             if nid not in persons:
                 continue
             try:
