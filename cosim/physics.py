@@ -157,13 +157,8 @@ class PhysicsWorld:
                 continue
             if parts and (time.perf_counter() - t0) * 1000.0 > budget:
                 break
-            if k in self._stale:          # replaced in one go: the sensors never see a hole
-                self.unload_tile(k)
-                self.load_tile(k)
-                loaded += 1
-                parts += 1
-                continue
-            # a new tile, a part at a time (terrain, each mesh class, scenery) within the budget
+            # a tile, a part at a time (terrain, each mesh class, scenery) within the budget; a
+            # stale one part for part (see _replace_parts)
             job = self._loading.get(k)
             if job is None:
                 job = self._loading[k] = self._start_tile(k)
@@ -174,7 +169,7 @@ class PhysicsWorld:
                     break
             if done:
                 del self._loading[k]
-                self._finish_tile(k, job[0])
+                self._finish_tile(k, job)
                 loaded += 1
         keep = set(self.world.tiles_within(x, y, unload_radius))
         unloaded = 0
@@ -192,9 +187,10 @@ class PhysicsWorld:
 
     def refresh(self, chunks) -> int:
         """The world took in a new window: the loaded tiles of the chunks it replaced are
-        stale. ``update`` replaces them (the new tile loaded in the same call that unloads the
-        old one) nearest first, within its time budget, like any other load. Returns how many
-        tiles became stale."""
+        stale. ``update`` replaces them nearest first, a part at a time within its time budget
+        like any other load, each new part taking the place of the old one of its kind in the
+        same call (``_replace_parts``): the sensors never see a hole. Returns how many tiles
+        became stale."""
         chunks = set(chunks)
         for k in [k for k in self._loading if (k[0], k[1]) in chunks]:
             self._drop_loading(k)         # (half made from the old build: begun anew)
@@ -212,17 +208,53 @@ class PhysicsWorld:
         job = self._loading.pop(key, None) or self._start_tile(key)
         for _ in job[1]:
             pass
-        return self._finish_tile(key, job[0])
+        return self._finish_tile(key, job)
 
     def _start_tile(self, key):
+        """A tile's loading job: (its TileBodies, the generator of its parts, the stale tile it
+        replaces or None)."""
         tb = TileBodies()
-        return tb, self._tile_parts(key, tb)
+        old = self.tiles.get(key) if key in self._stale else None
+        if old is None:
+            return tb, self._tile_parts(key, tb), None
+        return tb, self._replace_parts(key, tb, old), old
 
-    def _finish_tile(self, key, tb):
+    def _finish_tile(self, key, job):
+        tb, _, old = job
+        if old is not None:             # what is left of the stale tile (its scenery) goes now
+            self._remove_bodies(old)
+            if self.visuals:
+                self._chunk_visual_ref((key[0], key[1]), -1)
+            self._stale.discard(key)
+            self.unloads += 1
         self.load_times_ms.append(tb.load_ms)
         self.tiles[key] = tb
         self.loads += 1
         return tb
+
+    def _replace_parts(self, key, tb, old):
+        """The new build of a stale tile, a part at a time; each part removes the stale tile's
+        part of the same kind in the same call (the terrain for the terrain, a mesh class for
+        its class), so that the ground is never missing nor doubled. The stale tile stays in
+        ``tiles`` (and ``covered``) until the new one is complete (``_finish_tile``)."""
+        made = 0
+        for _ in self._tile_parts(key, tb):
+            t0 = time.perf_counter()
+            for kind in tb.kinds[made:]:
+                self._remove_kind(old, kind)
+            made = len(tb.kinds)
+            tb.load_ms += (time.perf_counter() - t0) * 1000.0
+            yield
+
+    def _remove_kind(self, tb, kind: str) -> None:
+        """Remove a tile's bodies of one kind (terrain or a mesh class)."""
+        for i, k in enumerate(tb.kinds):
+            if k == kind and tb.bodies[i] is not None:
+                pb.removeBody(tb.bodies[i], physicsClientId=self.client)
+                tb.bodies[i] = None
+                if kind == "terrain" and tb.hf_shape >= 0:
+                    self._hf_free.setdefault(self._hf_key_of[tb.hf_shape], []).append(tb.hf_shape)
+                    tb.hf_shape = -1
 
     def _tile_parts(self, key, tb):
         """A tile's bodies, one part per iteration (the terrain, each mesh class, the
@@ -259,19 +291,26 @@ class PhysicsWorld:
         tb.load_ms += (time.perf_counter() - t0) * 1000.0
 
     def _drop_loading(self, key) -> None:
-        """Remove what a tile still being loaded has made so far."""
+        """Remove what a tile still being loaded has made so far (and, when it was replacing
+        a stale tile that has already lost parts, that tile too: it is loaded anew)."""
         job = self._loading.pop(key, None)
         if job is None:
             return
         job[1].close()
         self._remove_bodies(job[0])
+        old = job[2]
+        if old is not None and self.tiles.get(key) is old and any(b is None for b in old.bodies):
+            self.unload_tile(key)
 
     def _remove_bodies(self, tb) -> None:
         """Remove a tile's bodies; its heightfield shape goes back to the pool."""
         for b in tb.bodies:
-            pb.removeBody(b, physicsClientId=self.client)
+            if b is not None:
+                pb.removeBody(b, physicsClientId=self.client)
+        tb.bodies = [None] * len(tb.bodies)
         if tb.hf_shape >= 0:
             self._hf_free.setdefault(self._hf_key_of[tb.hf_shape], []).append(tb.hf_shape)
+            tb.hf_shape = -1
 
     def unload_tile(self, key):
         self._stale.discard(key)

@@ -68,6 +68,7 @@ class Summary:
     chunks_visited: int = 0
     sumo_collisions: int = 0
     sumo_teleports: int = 0
+    persons_held: int = 0            # pedestrians that stopped rather than walk into the ego
     ego_collisions: int = 0
     distance_m: float = 0.0
     sensor_range_violations: int = 0
@@ -88,7 +89,7 @@ class Summary:
                 f"{self.distance_m:.0f} m driven; actors up to {self.max_vehicles} vehicles + {self.max_persons} persons "
                 f"({self.max_mirrored} mirrored); tiles loaded {self.tiles_loaded} / unloaded {self.tiles_unloaded}; "
                 f"collisions: ego {self.ego_collisions}, SUMO {self.sumo_collisions}; teleports {self.sumo_teleports}; "
-                f"sensor-range violations {self.sensor_range_violations}; "
+                f"pedestrians stopped for the ego {self.persons_held}; sensor-range violations {self.sensor_range_violations}; "
                 f"windows built {self.windows_built}, SUMO network swaps {self.network_swaps}"
                 + (f"; SUMO restarted after a crash {self.sumo_restarts} time(s)" if self.sumo_restarts else "")
                 + f".{arr}")
@@ -690,6 +691,7 @@ class Simulation:
             if self._pipelined:
                 self.traffic.sync()
             s.sumo_collisions, s.sumo_teleports = self.traffic.stats.collisions, self.traffic.stats.teleports
+            s.persons_held = self.traffic.stats.persons_held
         s.chunks_visited = len(self._chunks_seen)
         if self._frame_ms:
             f = np.array(self._frame_ms)

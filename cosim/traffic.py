@@ -61,6 +61,9 @@ PROBE_ID = "cosim_probe"
 CONTEXT_MARGIN = 20.0   # m: front-bumper anchors vs centre distances (half a bus + half the ego)
 DEFAULT_CONTEXT_RADIUS = 150.0
 EGO_MATCH_RADIUS_M = 15.0
+PERSON_YIELD_RANGE_M = 15.0    # pedestrians this near the ego are checked (see _persons_yield)
+PERSON_YIELD_MARGIN_M = 0.5    # they stop this far outside the ego's footprint
+PERSON_YIELD_HORIZON = (0.25, 0.5, 0.75, 1.0)   # s ahead at which their paths are tested
 EGO_UNSTICK_M = 0.015       # see _after_step: a long-waiting ego jitters this much in SUMO   # the ego is mapped onto a lane within this distance, else off the network
 
 _LIBSUMO_OWNER = None   # the SumoTraffic running on libsumo in this process, if any
@@ -182,6 +185,7 @@ class TrafficStats:
     max_vehicles: int = 0
     max_persons: int = 0
     swap_dropped: int = 0      # carried persons a swap had to drop (see _drop_stranded_persons)
+    persons_held: int = 0      # times a pedestrian stopped rather than walk into the ego (_persons_yield)
     _seen_collisions: set = field(default_factory=set, repr=False)
 
 
@@ -221,7 +225,7 @@ class SumoTraffic(Component):
     def __init__(self, net_file, route_files: Sequence = (), step_length: float = 0.1,
                  seed: int = 0, backend: str = "libsumo", gui: bool = False,
                  extra_args: Iterable[str] = (), time_to_teleport: float = 120.0,
-                 warnings: bool = False):
+                 warnings: bool = False, persons_yield: bool = True):
         if backend not in ("libsumo", "traci"):
             raise SimulationError(f"unknown SUMO backend {backend!r} (use libsumo or traci)")
         if gui and backend != "traci":
@@ -239,6 +243,7 @@ class SumoTraffic(Component):
         self.extra_args = [str(a) for a in extra_args]
         self.time_to_teleport = float(time_to_teleport)
         self.warnings = bool(warnings)
+        self.persons_yield = bool(persons_yield)
         self.stats = TrafficStats()
         self._sim = None           # libsumo module or a traci Connection
         self._label = None
@@ -265,6 +270,8 @@ class SumoTraffic(Component):
         self._lane_tls: dict[str, tuple[str, int]] = {}
         self._exc: tuple = (Exception,)
         self._dims_cache: dict[str, tuple[float, float, float]] = {}
+        self._held: dict[str, float] = {}  # pedestrians stopped for the ego: id -> their own pace
+        self._ego_pose: tuple | None = None  # the centre and yaw last given to set_ego_pose
 
     @property
     def running(self) -> bool:
@@ -493,6 +500,8 @@ class SumoTraffic(Component):
                 self._ego_unstick = s.vehicle.getWaitingTime(EGO_ID) > 0.5 * self.time_to_teleport
             except self._exc:
                 pass
+        if self.persons_yield and (self._ego_in_sim or self._held):
+            self._persons_yield()
         n_tele = int(r.get(tc.VAR_TELEPORT_STARTING_VEHICLES_NUMBER, 0))
         if n_tele:
             st.teleports += n_tele
@@ -511,6 +520,71 @@ class SumoTraffic(Component):
         st.vehicles = s.vehicle.getIDCount() - (1 if self._ego_in_sim else 0)
         st.max_vehicles = max(st.max_vehicles, st.vehicles)
         st.max_persons = max(st.max_persons, st.persons)
+
+    def _persons_yield(self) -> None:
+        """Pedestrians do not walk into the ego: one whose path would take it into the ego's
+        footprint (plus PERSON_YIELD_MARGIN_M) within PERSON_YIELD_HORIZON stops where it is
+        (``person.setSpeed(0)``) and walks on at its own speed once its path is clear.
+
+        SUMO's pedestrians see vehicles only where they cross a road; elsewhere nothing keeps
+        them out of a car that SUMO itself does not move. Where netconvert's guessed sidewalk
+        overlaps a lane (beside tram lanes in Helsinki: a sidewalk 0.94 m from the centre of a
+        car lane), SUMO's pedestrians walk through cars, and one walked through the standing
+        ego. A person already touching the ego is left to walk out. Uses the ego's context
+        subscription (the persons near it come with every step)."""
+        s, tc = self._sim, self._tc
+        res = {}
+        if self._ego_in_sim and self._ctx_anchor == EGO_ID:
+            try:
+                res = s.vehicle.getContextSubscriptionResults(EGO_ID) or {}
+            except self._exc:
+                res = {}
+        hold: dict[str, float] = {}
+        if res and self._ego_pose is not None:
+            spec = self._ego_spec
+            cx, cy, yaw = self._ego_pose
+            c, sn = math.cos(yaw), math.sin(yaw)
+            hl = spec["length"] / 2 + PERSON_YIELD_MARGIN_M
+            hw = spec["width"] / 2 + PERSON_YIELD_MARGIN_M
+            r2 = PERSON_YIELD_RANGE_M ** 2
+            for pid, v in res.items():
+                if tc.VAR_VEHICLE not in v or v[tc.VAR_VEHICLE] or tc.VAR_POSITION not in v:
+                    continue                         # a vehicle, or a person riding in one
+                dx, dy = v[tc.VAR_POSITION][0] - cx, v[tc.VAR_POSITION][1] - cy
+                if dx * dx + dy * dy > r2:
+                    continue
+                # a stopped person: at its own pace; one that stands by itself goes nowhere
+                sp = self._held.get(pid, v[tc.VAR_SPEED])
+                if sp < 0.05:
+                    continue
+                a = math.radians(90.0 - v[tc.VAR_ANGLE])
+                vx, vy = sp * math.cos(a), sp * math.sin(a)
+                lon, lat = dx * c + dy * sn, -dx * sn + dy * c
+                if abs(lon) <= hl and abs(lat) <= hw:
+                    continue                         # already touching: let it walk out
+                vlon, vlat = vx * c + vy * sn, -vx * sn + vy * c
+                if any(abs(lon + vlon * t) <= hl and abs(lat + vlat * t) <= hw
+                       for t in PERSON_YIELD_HORIZON):
+                    hold[pid] = sp
+        held = {}
+        for pid, sp in hold.items():
+            if pid in self._held:
+                held[pid] = self._held[pid]
+                continue
+            try:
+                pace = s.person.getMaxSpeed(pid)     # its own pace (or one set through TraCI)
+                s.person.setSpeed(pid, 0.0)
+            except self._exc:
+                continue
+            held[pid] = pace
+            self.stats.persons_held += 1
+            log.debug("person %s stops for the ego at t=%.1f s", pid, self.sim_time)
+        for pid in self._held.keys() - held.keys():
+            try:
+                s.person.setSpeed(pid, self._held[pid])     # on at its own pace
+            except self._exc:
+                pass                                 # arrived or gone
+        self._held = held
 
     # --- ego ----------------------------------------------------------------------------
     def add_ego(self, route_edges: Sequence[str] | None = None, from_edge: str | None = None,
@@ -596,6 +670,7 @@ class SumoTraffic(Component):
         if not self._ego_added:
             raise SimulationError("add_ego() must come before set_ego_pose()")
         angle = yaw_to_sumo_angle(yaw)
+        self._ego_pose = (float(x), float(y), float(yaw))   # the car's body, for _persons_yield
         if self._ego_unstick:
             self._unstick_sign = -self._unstick_sign
             x += self._unstick_sign * EGO_UNSTICK_M * math.cos(yaw)

@@ -116,7 +116,7 @@ def test_road_lengths_match_geodesic_osm_lengths(helsinki):
         if len(nds) < 2:
             continue
         first, last = str(nds[0][0]), str(nds[-1][0])
-        cur, length, hops, shifted = first, 0.0, 0, False
+        cur, length, hops, shift, turn = first, 0.0, 0, 0.0, 0.0
         while cur != last and hops < 200:
             e = out_edges.get((wid, cur))
             if e is None or e.to_node.startswith("cluster"):
@@ -124,12 +124,16 @@ def test_road_lengths_match_geodesic_osm_lengths(helsinki):
             g = _edge_geometry(net, e)
             fj, tj = net.junctions[e.from_node], net.junctions[e.to_node]
             # netconvert may shift a whole edge sideways off its nodes (one-way roads with a
-            # guessed sidewalk on one side): a parallel offset of a curve changes its length
-            shifted |= bool(np.hypot(g[0, 0] - fj.x, g[0, 1] - fj.y) > 0.5 or
-                            np.hypot(g[-1, 0] - tj.x, g[-1, 1] - tj.y) > 0.5)
+            # guessed sidewalk on one side): a parallel offset d of a polyline that turns by
+            # an angle T in all changes its length by at most d * T
+            shift = max(shift, float(np.hypot(g[0, 0] - fj.x, g[0, 1] - fj.y)),
+                        float(np.hypot(g[-1, 0] - tj.x, g[-1, 1] - tj.y)))
+            h = np.arctan2(*np.diff(g, axis=0).T[::-1])
+            turn += float(np.abs(np.angle(np.exp(1j * np.diff(h)))).sum())
             length += float(np.sum(np.hypot(*np.diff(g, axis=0).T)))
             cur = e.to_node
             hops += 1
+        shifted = shift > 0.5
         if cur != last or hops == 0 or first.startswith("cluster"):
             continue            # not built as one chain of its own edges (merged, cut, clustered)
         lon = np.array([n[1] for n in nds])
@@ -139,13 +143,13 @@ def test_road_lengths_match_geodesic_osm_lengths(helsinki):
             continue
         checked += 1
         if abs(length / geo - 1.0) > 0.01:
-            if shifted:
-                offset += 1
+            if shifted and abs(length - geo) <= 0.01 * geo + shift * turn:
+                offset += 1     # (a curved edge netconvert moved sideways off its nodes)
             else:
-                bad.append((wid, round(geo, 2), round(length, 2)))
+                bad.append((wid, round(geo, 2), round(length, 2), round(shift, 2), round(turn, 2)))
+    print(f"{checked} ways checked, {offset} shifted sideways by netconvert and within 1 % plus the offset's effect")
     assert checked >= 200, checked
-    # the only exceptions: curved edges netconvert moved sideways off their nodes (Helsinki: 3)
-    assert offset <= 0.02 * checked, f"{offset} of {checked} shifted ways off by more than 1 %"
+    assert offset <= 0.05 * checked, f"{offset} of {checked} ways shifted"
     assert not bad, f"{len(bad)} of {checked} ways off by more than 1 %: {bad[:5]}"
 
 

@@ -260,19 +260,38 @@ def test_follows_with_time_gap_then_stops_behind_stopped_car(helsinki):
         sim.teardown()
 
 
-def _walker_across(sim, crossing, speed=0.3) -> str:
-    """A SUMO person crossing `crossing` slowly from the far side (left of the ego's path)."""
+def _walker_across(sim, crossing) -> str:
+    """A SUMO person that walks onto `crossing` from the far side (left of the ego's path);
+    the caller slows it down once it is on. (A person at the kerb of a crossing without
+    priority waits for any car coming, so the caller holds the ego back until then.)"""
     s = sim.traffic.sumo
     shape = np.array(s.lane.getShape(crossing.lane))
     k = sim.path.index_at(crossing.s)
     lat0 = sim.path.project(*shape[0], k)[2]
     lat1 = sim.path.project(*shape[-1], k)[2]
     far, near = (shape[0], shape[-1]) if lat0 > lat1 else (shape[-1], shape[0])
-    a = s.simulation.convertRoad(float(far[0]), float(far[1]), False, "pedestrian")
-    b = s.simulation.convertRoad(float(near[0]), float(near[1]), False, "pedestrian")
+
+    def sidewalk_at(end):
+        """The sidewalk lane of the crossing's junction that ends nearest this end of the
+        crossing, and the position on it by the junction (a person cannot start on a crossing)."""
+        best = None
+        for e in set(s.junction.getIncomingEdges(crossing.junction)) | set(s.junction.getOutgoingEdges(crossing.junction)):
+            lane = f"{e}_0"
+            if e.startswith(":") or "pedestrian" not in s.lane.getAllowed(lane):
+                continue
+            sh = np.array(s.lane.getShape(lane))
+            into = s.edge.getToJunction(e) == crossing.junction
+            d = float(np.hypot(*(sh[-1 if into else 0] - end)))
+            if best is None or d < best[0]:
+                length = s.lane.getLength(lane)
+                best = (d, e, max(length - 0.5, length / 2) if into else min(0.5, length / 2))
+        assert best and best[0] < 10.0, f"no sidewalk by {crossing.lane}"
+        return best[1], best[2]
+
+    a, b = sidewalk_at(far), sidewalk_at(near)
     s.person.add("walker", a[0], a[1])
     s.person.appendWalkingStage("walker", [a[0], b[0]], b[1])
-    s.person.setSpeed("walker", speed)
+    s.person.setSpeed("walker", 1.5)
     return "walker"
 
 
@@ -283,20 +302,26 @@ def test_yields_to_pedestrian_on_crossing(helsinki):
         crossing = sim.path.crossings[0]
         assert crossing.junction not in s.trafficlight.getIDList()    # no light: right of way
         pid = _walker_across(sim, crossing)
+        sim.set_speed(0.0)                      # until the walker is on the crossing
         near_edge = crossing.s - crossing.width / 2.0
         k = sim.path.index_at(crossing.s)
-        waited = 0
+        waited, slowed = 0, False
         while sim.t < 80 and not sim.summary.arrived:
             sim.step()
             front = ego_front_s(sim)
             v = sim.vehicle.state().speed
             if pid in s.person.getIDList() and s.person.getRoadID(pid) == crossing.edge:
+                if not slowed:               # on the crossing: 6 m at 0.3 m/s; the car comes
+                    s.person.setSpeed(pid, 0.3)
+                    sim.set_speed(10.0)
+                    slowed = True
                 px, py = s.person.getPosition(pid)
                 lat = sim.path.project(px, py, k)[2]
                 if lat > -3.0:                 # on the crossing, not yet past the ego's lane
                     assert front <= near_edge + 0.05, (front, near_edge)
                     if abs(v) < 0.1:
                         waited += 1
+        assert slowed                          # the walker got onto the crossing
         assert waited >= 30                    # it stopped and waited (> 3 s)
         assert sim.summary.arrived             # and went on when the way was clear
         assert sim.summary.ego_collisions == 0

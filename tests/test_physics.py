@@ -132,6 +132,24 @@ def test_tiles_load_a_part_at_a_time_within_the_budget(monaco_world):
         assert calls >= n_parts - 1 and part.covered(kx, ky, 5.0)
         tb = part.tiles[key]
         assert tb.kinds == kinds_whole and len(tb.bodies) == len(whole.tiles[key].bodies)
+        # a stale tile (its chunk rebuilt: ``refresh``) is replaced a part at a time, each new
+        # part taking the place of the old one of its kind: never a hole, never doubled
+        n_bodies = pb.getNumBodies(physicsClientId=part.client)
+        assert part.refresh([(key[0], key[1])]) == 1
+        old, calls = part.tiles[key], 0
+        while part.tiles[key] is old:
+            part.update(kx, ky, 10.0, budget_ms=0.0)
+            calls += 1
+            assert key in part.tiles and part.covered(kx, ky, 5.0)
+            assert pb.getNumBodies(physicsClientId=part.client) == n_bodies
+            assert calls <= 50
+        assert calls >= n_parts - 1 and not part._stale and not part._loading
+        new = part.tiles[key]
+        assert new.kinds == kinds_whole and all(b is None for b in old.bodies)
+        assert all(b is not None for b in new.bodies) and len(new.bodies) == len(tb.bodies)
+        # what stands on the tile still stands on the ground
+        hit = pb.rayTest([kx, ky, 1000.0], [kx, ky, -1000.0], physicsClientId=part.client)[0]
+        assert hit[0] in new.bodies
         # a tile that leaves the window half made leaves no body behind
         other = next(k for k in w.tiles_within(0.0, 0.0, 600.0) if w.is_built(k) and k not in part.tiles)
         xmin, ymin, xmax, ymax = w.tile_bounds(other)

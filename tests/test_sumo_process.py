@@ -157,12 +157,22 @@ def test_worker_errors_are_one_line(net, tmp_path):
         t.teardown()
 
 
+def _busy_lane(s):
+    """The long passenger lane with the most vehicles on it now (ties: by id)."""
+    lanes = [lane for lane in s.lane.getIDList() if not lane.startswith(":") and
+             "passenger" in s.lane.getAllowed(lane) and s.lane.getLength(lane) > 80.0]
+    assert lanes, "no long passenger lane"
+    return min(lanes, key=lambda lane: (-s.lane.getLastStepVehicleNumber(lane), lane))
+
+
 def _swap_run(t, lane, other_routes, prepare):
-    """300 steps of traffic, 30 of the ego driving along `lane`, a swap (to the same network
-    with another demand), 30 more steps: the actors near the ego after each of those steps, the
-    swap's id mapping and the ego's centre at the swap."""
+    """300 steps of traffic, 30 of the ego driving along `lane` (None: the busiest long lane
+    then), a swap (to the same network with another demand), 30 more steps: the actors near
+    the ego after each of those steps, the swap's id mapping, the ego's centre at the swap and
+    the lane."""
     for _ in range(300):
         t.step()
+    lane = lane or _busy_lane(t.sumo)
     mapping = {}
 
     def each_step(k):
@@ -174,7 +184,7 @@ def _swap_run(t, lane, other_routes, prepare):
             mapping.update(t.swap_network(t.net_file, other_routes, keep_radius=60.0))
 
     out, centres = _drive(t, lane, 60, each_step)
-    return out, mapping, centres[30]
+    return out, mapping, centres[30], lane
 
 
 def test_swap_to_a_network_started_ahead(net, routes, tmp_path):
@@ -185,15 +195,14 @@ def test_swap_to_a_network_started_ahead(net, routes, tmp_path):
     local = SumoTraffic(net, routes, seed=4)
     local.setup()
     try:
-        lane = _start_lane(local.sumo)
-        want, want_map, ego_xy = _swap_run(local, lane, other, prepare=False)
+        want, want_map, ego_xy, lane = _swap_run(local, None, other, prepare=False)
     finally:
         local.teardown()
     remote = TrafficProcess(net, routes, seed=4)
     remote.setup()
     try:
         first = remote._proc.pid
-        got, got_map, _ = _swap_run(remote, lane, other, prepare=True)
+        got, got_map, _, _ = _swap_run(remote, lane, other, prepare=True)
         assert remote._proc.pid != first and remote.preparing is None
         assert remote.route_files == [p for p in map(type(remote.route_files[0]), other)]
         assert remote._generation == 1

@@ -227,6 +227,99 @@ def test_ego_injected_where_placed(traffic):
     assert t.stats.vehicles == 0
 
 
+def test_no_sidewalks_along_rails_but_streets_keep_theirs(helsinki_net):
+    """netconvert's speed rule for --sidewalks.guess gave every tram and railway edge of central
+    Helsinki a sidewalk; beside Kaisaniemenkatu that sidewalk ran 0.2-0.5 m from the centre of
+    a car lane, and pedestrians walked through the cars."""
+    import sumolib
+    net = sumolib.net.readNet(str(helsinki_net), withInternal=False)
+    with_sidewalk = {}
+    for e in net.getEdges():
+        kind = e.getType().split("|")[0]
+        lanes = e.getLanes()
+        sw = len(lanes) > 1 and any(lane.getPermissions() == {"pedestrian"} for lane in lanes)
+        n, k = with_sidewalk.get(kind, (0, 0))
+        with_sidewalk[kind] = (n + 1, k + int(sw))
+    rails = {k: v for k, v in with_sidewalk.items() if k.startswith("railway.")}
+    print("edges, with a sidewalk:", with_sidewalk)
+    assert rails.get("railway.tram", (0, 0))[0] > 100         # central Helsinki has its trams
+    assert all(k == 0 for _, k in rails.values()), rails
+    for street in ("highway.primary", "highway.secondary", "highway.residential"):
+        n, k = with_sidewalk[street]
+        assert k >= 0.95 * n, (street, n, k)
+
+
+def _straight_sidewalk(s, min_length):
+    """A straight sidewalk (a pedestrian-only lane beside a road) at least min_length long."""
+    best = None
+    for e in s.edge.getIDList():
+        if e.startswith(":") or s.edge.getLaneNumber(e) < 2:
+            continue
+        lane = f"{e}_0"
+        if s.lane.getAllowed(lane) != ("pedestrian",) or s.lane.getLength(lane) < min_length:
+            continue
+        shape = np.array(s.lane.getShape(lane))
+        chord = np.hypot(*(shape[-1] - shape[0]))
+        if chord > 0.995 * s.lane.getLength(lane) and (best is None or e < best[0]):
+            best = (e, lane)
+    assert best, "no straight sidewalk in the network"
+    return best
+
+
+@pytest.mark.parametrize("yield_", [True, False])
+def test_pedestrian_stops_rather_than_walk_into_the_ego(traffic, yield_):
+    """A car stands across a sidewalk; a pedestrian walks towards it. With persons_yield (the
+    default) the pedestrian stops outside the car and walks on once the car has gone; without
+    it SUMO walks the pedestrian through the car (which this world's physics counts as an ego
+    collision)."""
+    t = traffic(persons_yield=yield_)
+    s = t.sumo
+    edge, lane = _straight_sidewalk(s, 60.0)
+    fx, fy, angle = lane_pose(s, lane, 40.0)
+    yaw = sumo_angle_to_yaw(angle)
+    cx, cy = front_to_center(fx, fy, angle, 4.5)
+    t.add_ego([passenger_lanes(s, 10.0)[0][0].rsplit("_", 1)[0]])
+    assert t.set_ego_pose(cx, cy, yaw, 0.0)
+    t.step()
+    s.person.add("walker", edge, 5.0, depart=-3)      # walks along the sidewalk into the car
+    s.person.appendWalkingStage("walker", [edge], s.lane.getLength(lane) - 1.0)
+    c, sn = math.cos(yaw), math.sin(yaw)
+
+    def inside():   # the walker's body (0.25 m radius) in the car's 4.5 x 1.8 m footprint
+        px, py = s.person.getPosition("walker")
+        dx, dy = px - cx, py - cy
+        return abs(dx * c + dy * sn) <= 2.25 + 0.25 and abs(-dx * sn + dy * c) <= 0.9 + 0.25
+
+    touched, walked = 0, 0.0
+    for _ in range(400):                              # 40 s: 35 m at a walking pace
+        t.set_ego_pose(cx, cy, yaw, 0.0)
+        t.step()
+        if "walker" not in s.person.getIDList():
+            break
+        touched += inside()
+        walked = max(walked, s.person.getLanePosition("walker"))
+    if not yield_:
+        assert touched > 0 and walked > 45.0           # through the car and on
+        assert t.stats.persons_held == 0
+        return
+    assert touched == 0
+    assert t.stats.persons_held == 1
+    assert 25.0 < walked < 40.0 - 2.25                 # waiting behind the car
+    assert s.person.getSpeed("walker") == 0.0
+    # the car drives away: the walker goes on at its own pace and arrives
+    far = passenger_lanes(s, 10.0)[0][0]
+    gx, gy, gang = lane_pose(s, far, 5.0)
+    t.set_ego_pose(*front_to_center(gx, gy, gang, 4.5), sumo_angle_to_yaw(gang), 0.0)
+    speeds = []
+    for _ in range(600):
+        t.step()
+        if "walker" not in s.person.getIDList():
+            break
+        speeds.append(s.person.getSpeed("walker"))
+    assert "walker" not in s.person.getIDList()       # arrived
+    assert max(speeds) > 0.8
+
+
 def test_sumo_car_brakes_behind_stationary_ego(traffic):
     t = traffic(seed=2)
     s = t.sumo
