@@ -517,6 +517,7 @@ class Simulation:
             "tiles_loaded": len(self.physics.tiles), "frame_ms": round(frame_ms, 2),
             "throttle": round(th, 3), "brake": round(br, 3), "steer": round(stv, 3),
             "target_speed_mps": round(getattr(self.driver, "target_speed", float("nan")), 2),
+            "reason": getattr(self.driver, "reason", None) or None,
             "mode": "manual" if self.manual is not None else "auto",
             "sumo_vehicles": ts.vehicles, "sumo_persons": ts.persons,
         })

@@ -4,7 +4,9 @@ Fields: t, lat, lon, alt_m (the ego's height above the elevation source's datum)
 yaw_deg (0 = east, counter-clockwise), speed_mps, edge (SUMO edge or null), lane,
 lateral_offset_m (from the followed lane's centreline, left positive), on_road, vehicles,
 persons (mirrored counts), chunks_loaded, tiles_loaded, frame_ms, plus control and
-planning fields (throttle, brake, steer, target_speed_mps, tls, lead_gap_m, mode).
+planning fields (throttle, brake, steer, target_speed_mps, reason: what sets the autopilot's
+target speed, e.g. "cruise", "lead vehicle", "red light", "crossing"; mode: auto or manual) and
+SUMO's own counts (sumo_vehicles, sumo_persons).
 """
 from __future__ import annotations
 
