@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .driving import PurePursuit, SpeedController, _drivable_lanes, plan_speed, stop_speed
+from .driving import PurePursuit, SpeedController, _drivable_lanes, curve_speed, plan_speed, stop_speed
 
 log = logging.getLogger("cosim.autopilot")
 
@@ -71,6 +71,7 @@ YIELD_GIVE_UP_S = 40.0     # after waiting this long at a yield, go when nothing
 NEAR_MISS_TTC_S = 1.5
 NEAR_MISS_GAP_M = 2.0
 SENSE_RANGE_M = 80.0       # obstacles on the path are considered up to here
+CROSS_LANE_MARGIN_M = 3.5  # a crossing vehicle's road may have a lane nearer than its own
 OSM_SIGN_RADIUS_M = 20.0   # an OSM stop sign belongs to an approach whose stop line is this close
 YIELD_STATES = set("m=goO")
 RED_STATES = set("rRu")
@@ -415,9 +416,19 @@ class Autopilot:
                 if t_in > 4.0:
                     continue
                 t_arr = max(gap, 0.0) / v_ego
-                t_pass = (max(gap, 0.0) + self.length + 2.0 * ext_lon) / v_ego
+                # the ego may slow down before it is past (a curve on the way: a motorway ramp
+                # crossing a road at grade, where the car slowed from 22 to 12 m/s and met a
+                # car it had timed to pass behind): it passes at the lowest speed its path
+                # allows up to the far side of the actor's track
+                v_slow = min(v_ego, curve_speed(path.max_curvature(s_here, float(s[j]) + self.length)))
+                t_pass = (max(gap, 0.0) + self.length + 2.0 * ext_lon) / max(v_slow, 0.5)
                 if t_arr > t_out + 1.0 or t_pass < t_in - 0.5:
                     continue                          # it is gone before, or comes after, the ego
+            if crossing and not person and not inside:
+                # a vehicle crossing the path: stop before its road, not just before its lane
+                # (stopped 4 m before a car in the far lane of a two-lane road, the car's nose
+                # was in the near lane, and a truck in it hit the car)
+                gap -= CROSS_LANE_MARGIN_M
             if best is None or gap < best.gap:
                 best = Lead(max(0.0, gap), lead_v, "person" if person else "vehicle", "actors", str(actors.ids[i]))
         return best
