@@ -252,9 +252,8 @@ class PhysicsWorld:
             if k == kind and tb.bodies[i] is not None:
                 pb.removeBody(tb.bodies[i], physicsClientId=self.client)
                 tb.bodies[i] = None
-                if kind == "terrain" and tb.hf_shape >= 0:
-                    self._hf_free.setdefault(self._hf_key_of[tb.hf_shape], []).append(tb.hf_shape)
-                    tb.hf_shape = -1
+                if kind == "terrain":
+                    self._release_heightfield(tb)
 
     def _tile_parts(self, key, tb):
         """A tile's bodies, one part per iteration (the terrain, each mesh class, the
@@ -308,6 +307,10 @@ class PhysicsWorld:
             if b is not None:
                 pb.removeBody(b, physicsClientId=self.client)
         tb.bodies = [None] * len(tb.bodies)
+        self._release_heightfield(tb)
+
+    def _release_heightfield(self, tb) -> None:
+        """A tile's heightfield shape goes back to the pool (PyBullet never frees a shape)."""
         if tb.hf_shape >= 0:
             self._hf_free.setdefault(self._hf_key_of[tb.hf_shape], []).append(tb.hf_shape)
             tb.hf_shape = -1

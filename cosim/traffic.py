@@ -60,11 +60,11 @@ EGO_ID = "ego"
 PROBE_ID = "cosim_probe"
 CONTEXT_MARGIN = 20.0   # m: front-bumper anchors vs centre distances (half a bus + half the ego)
 DEFAULT_CONTEXT_RADIUS = 150.0
-EGO_MATCH_RADIUS_M = 15.0
+EGO_MATCH_RADIUS_M = 15.0      # the ego is mapped onto a lane within this distance, else off the network
 PERSON_YIELD_RANGE_M = 15.0    # pedestrians this near the ego are checked (see _persons_yield)
 PERSON_YIELD_MARGIN_M = 0.5    # they stop this far outside the ego's footprint
 PERSON_YIELD_HORIZON = (0.25, 0.5, 0.75, 1.0)   # s ahead at which their paths are tested
-EGO_UNSTICK_M = 0.015       # see _after_step: a long-waiting ego jitters this much in SUMO   # the ego is mapped onto a lane within this distance, else off the network
+EGO_UNSTICK_M = 0.015       # see _after_step: a long-waiting ego jitters this much in SUMO
 
 _LIBSUMO_OWNER = None   # the SumoTraffic running on libsumo in this process, if any
 
@@ -531,10 +531,9 @@ class SumoTraffic(Component):
         (``person.setSpeed(0)``) and walks on at its own speed once its path is clear.
 
         SUMO's pedestrians see vehicles only where they cross a road; elsewhere nothing keeps
-        them out of a car that SUMO itself does not move. Where netconvert's guessed sidewalk
-        overlaps a lane (beside tram lanes in Helsinki: a sidewalk 0.94 m from the centre of a
-        car lane), SUMO's pedestrians walk through cars, and one walked through the standing
-        ego. A person already touching the ego is left to walk out. Uses the ego's context
+        them out of a car that SUMO itself does not move (where a guessed sidewalk overlapped a
+        car lane in Helsinki, one walked through the standing ego). A person already touching
+        the ego is left to walk out. Uses the ego's context
         subscription (the persons near it come with every step). A person ahead of the car's
         front is never stopped: there the car waits for the person (the autopilot yields to
         people in its path), and stopping both would leave them waiting for each other."""
@@ -545,7 +544,7 @@ class SumoTraffic(Component):
                 res = self._ego_context()
             except self._exc:
                 res = {}
-        hold: dict[str, float] = {}
+        hold: set[str] = set()
         if res and self._ego_pose is not None:
             spec = self._ego_spec
             cx, cy, yaw = self._ego_pose
@@ -563,7 +562,7 @@ class SumoTraffic(Component):
                 sp = self._held.get(pid, v[tc.VAR_SPEED])
                 if sp < 0.05:
                     continue
-                a = math.radians(90.0 - v[tc.VAR_ANGLE])
+                a = sumo_angle_to_yaw(v[tc.VAR_ANGLE])
                 vx, vy = sp * math.cos(a), sp * math.sin(a)
                 lon, lat = dx * c + dy * sn, -dx * sn + dy * c
                 if abs(lon) <= hl and abs(lat) <= hw:
@@ -573,9 +572,9 @@ class SumoTraffic(Component):
                 vlon, vlat = vx * c + vy * sn, -vx * sn + vy * c
                 if any(abs(lon + vlon * t) <= hl and abs(lat + vlat * t) <= hw
                        for t in PERSON_YIELD_HORIZON):
-                    hold[pid] = sp
+                    hold.add(pid)
         held = {}
-        for pid, sp in hold.items():
+        for pid in hold:
             if pid in self._held:
                 held[pid] = self._held[pid]
                 continue
