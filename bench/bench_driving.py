@@ -54,8 +54,6 @@ MC_START, MC_GOAL = (43.738822, 7.424690), (43.738369, 7.424390)
 
 def world_for(name: str, workdir: Path, chunks: int) -> str | None:
     out = workdir / f"{name}-c{chunks}"
-    if (out / "world.json").exists():
-        return str(out)
     if name == "monaco":
         osm, dem = SHARED / "osm" / "monaco-2022.osm.pbf", SHARED / "dem" / "N43E007.hgt"
         if not osm.exists() or not dem.exists():
@@ -66,8 +64,9 @@ def world_for(name: str, workdir: Path, chunks: int) -> str | None:
     else:
         cfg = WorldConfig(preset=name, chunks=chunks, out=str(out), cache_dir=str(workdir / "cache"))
     t0 = time.perf_counter()
-    build_world(cfg)
-    print(f"{name}: built in {time.perf_counter() - t0:.0f} s")
+    w = build_world(cfg)        # reused as it is when built by this version from the same inputs
+    if not w.get("reused"):
+        print(f"{name}: built in {time.perf_counter() - t0:.0f} s")
     return str(out)
 
 

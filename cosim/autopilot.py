@@ -604,8 +604,11 @@ class Autopilot:
                 for vid in s.lane.getLastStepVehicleIDs(lane):
                     if vid == "ego":
                         continue
-                    sp = s.vehicle.getSpeed(vid)
-                    togo = L - s.vehicle.getLanePosition(vid) + extra
+                    try:        # (a vehicle listed a moment ago may have left SUMO since)
+                        sp = s.vehicle.getSpeed(vid)
+                        togo = L - s.vehicle.getLanePosition(vid) + extra
+                    except Exception:
+                        continue
                     if sp > 0.5 and togo / sp < t_need:
                         return False
         vias = self._internal_foes.get(stop.via)
@@ -713,10 +716,13 @@ class Autopilot:
             ch, sh = math.cos(h), math.sin(h)
             block = False
             for pid in on_it:
-                px, py = s.person.getPosition(pid)
+                try:            # (a person listed a moment ago may have arrived since)
+                    px, py = s.person.getPosition(pid)
+                    sp = s.person.getSpeed(pid)
+                    ang = math.radians(90.0 - s.person.getAngle(pid))
+                except Exception:
+                    continue
                 lat = -(px - p_here[0]) * sh + (py - p_here[1]) * ch      # across our path
-                sp = s.person.getSpeed(pid)
-                ang = math.radians(90.0 - s.person.getAngle(pid))
                 vlat = sp * (-math.cos(ang) * sh + math.sin(ang) * ch)
                 # on our side of the path or walking into it within 3 s
                 if abs(lat) < self.width / 2.0 + 2.5 or (abs(lat) < 8.0 and lat * vlat < 0

@@ -234,7 +234,7 @@ class DrivingEnv(_Base):
             x, y, yaw, lane, pos = sim._snap_start()
             z = float(sim.world.ground_z(x, y)[0])
             sim.physics.update(x, y, sim.keep_radius, budget_ms=1e9)
-            sim.vehicle.reset((x, y, z + 0.05), yaw)
+            sim.vehicle.place_on_ground(x, y, yaw, z)
             sim.goal_xy = None
             sim._plan_route(lane, pos)
             sim.traffic.set_ego_pose(x, y, yaw, 0.0)

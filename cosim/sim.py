@@ -179,6 +179,7 @@ class Simulation:
             self.physics.update(x, y, self.keep_radius, budget_ms=1e9)
             z = float(self.world.ground_z(x, y)[0])
             self.vehicle = EgoVehicle(self.physics.client, position=(x, y, z + 0.05), yaw=yaw)
+            self.vehicle.place_on_ground(x, y, yaw, z)      # on the road surface, tilted with it
             self.mirror = ActorMirror(self.physics.client, self.world, visuals=cfg.gui or cfg.render)
             self._plan_route(lane, pos)
             self.traffic.add_ego(route_edges=self.route)

@@ -297,7 +297,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
     try:
         # -- meanwhile (netconvert has the other core): all that needs no network ---------
         from .buildings import plan_buildings           # (imported once netconvert runs)
-        from .roads import _road_lanes as road_lanes, build_roads
+        from .roads import _road_lanes as road_lanes, build_roads, junction_gaps
         from .scenery import plan_scenery
         from .terrain import TerrainGrid, sample_grid
 
@@ -344,6 +344,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         # -- after the network: three streams on the two cores (see _Streams) -----------
         with T.stage("roads"):      # the lanes by edge, used by both streams: made once, before the fork
             road_lanes(net)
+            junction_gaps(net)
         if gc_frozen:
             gc.freeze()
         with streams:
@@ -482,16 +483,17 @@ class _Netconvert:
             self.osm_xml, self.net_file, self.proj, self.bbox, log=self.net_file.parent / "netconvert.log")
 
     def read_net(self):
-        """The network without its internal edges and junctions (nothing meshes them)."""
+        """The network without its internal junctions (nothing meshes them); its internal
+        lanes are kept (the vehicle ones are part of their junction's surface)."""
         from .roadnet import read_net, read_net_while_written
 
         if self.proc is None:
-            return read_net(self.net_file, internal=False)
+            return read_net(self.net_file, internal_junctions=False)
         try:
-            return read_net_while_written(self.net_file, self.proc, internal=False)
+            return read_net_while_written(self.net_file, self.proc, internal_junctions=False)
         except Exception:           # netconvert failed (or wrote garbage): finish() says why
             self.finish()
-            return read_net(self.net_file, internal=False)
+            return read_net(self.net_file, internal_junctions=False)
 
     def finish(self, T: Timer | None = None) -> dict:
         """netconvert's grouped warnings; raises DataError/BuildError if it failed."""

@@ -174,7 +174,8 @@ class _GrowingFile:
             self.f.close()
 
 
-def read_net_while_written(path: str | Path, proc, internal: bool = True) -> RoadNet:
+def read_net_while_written(path: str | Path, proc, internal: bool = True,
+                           internal_junctions: bool | None = None) -> RoadNet:
     """:func:`read_net` of the file that the running process `proc` (netconvert) is writing.
 
     Returns as soon as the parts the builder reads are in (the first ``connection``), which
@@ -183,16 +184,18 @@ def read_net_while_written(path: str | Path, proc, internal: bool = True) -> Roa
     parser's exception)."""
     f = _GrowingFile(path, proc)
     try:
-        return _read(f, internal)
+        return _read(f, internal, internal_junctions)
     finally:
         f.close()
 
 
-def read_net(path: str | Path, internal: bool = True) -> RoadNet:
+def read_net(path: str | Path, internal: bool = True, internal_junctions: bool | None = None) -> RoadNet:
     """The network in `path`; ``internal=False`` leaves out internal edges and junctions (the
-    connections inside junctions, which the world builder does not mesh)."""
+    connections inside junctions), ``internal_junctions=False`` only the internal junctions
+    (the world builder reads the internal lanes, where vehicles drive across a junction, but
+    not the junctions inside junctions)."""
     with open(path, "rb") as f:
-        return _read(f, internal)
+        return _read(f, internal, internal_junctions)
 
 
 #: shapes are parsed in batches while the file is read (the last batch is all that is left
@@ -200,7 +203,9 @@ def read_net(path: str | Path, internal: bool = True) -> RoadNet:
 SHAPE_BATCH = 2000
 
 
-def _read(f, internal: bool) -> RoadNet:
+def _read(f, internal: bool, internal_junctions: bool | None = None) -> RoadNet:
+    if internal_junctions is None:
+        internal_junctions = internal
     edges: dict = {}
     junctions: dict = {}
     tls: list = []
@@ -245,7 +250,7 @@ def _read(f, internal: bool) -> RoadNet:
             edges[e.id] = e
         elif tag == "junction":
             get = el.get
-            if not internal and get("type") == "internal":
+            if not internal_junctions and get("type") == "internal":
                 el.clear()
                 continue
             j = Junction(id=get("id"), type=get("type", ""), x=float(get("x", 0)),

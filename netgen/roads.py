@@ -284,6 +284,110 @@ def _open_ring(shape):
     return ring if len(ring) >= 3 else None
 
 
+def _internal_lanes(net):
+    """The vehicle lanes inside junctions (internal edges ``:J_k``): (the junction id of
+    each, the lanes). Kept on the network like :func:`_road_lanes`; empty when the network
+    was read without them."""
+    cached = getattr(net, "_internal_lanes_cache", None)
+    if cached is not None:
+        return cached
+    jids, lanes = [], []
+    for e in net.edges.values():
+        if e.function != "internal":
+            continue
+        for ln in e.lanes:
+            if ln.drivable and ln.shape is not None and len(ln.shape) >= 2:
+                jids.append(e.id[1:e.id.rfind("_")])
+                lanes.append(ln)
+    out = (jids, lanes)
+    try:
+        net._internal_lanes_cache = out
+    except AttributeError:
+        pass
+    return out
+
+
+def _lane_strips(lanes):
+    """Shapely strips of lanes: the centreline buffered by half the width, flat ends."""
+    if not lanes:
+        return np.empty(0, dtype=object)
+    P, g = _concat([ln.shape[:, :2] for ln in lanes])
+    return shapely.buffer(shapely.linestrings(P, indices=g), np.array([ln.width for ln in lanes]) / 2.0,
+                          cap_style="flat", join_style="mitre", mitre_limit=2.0)
+
+
+def _polygon_rings(geom, min_area: float = 0.5) -> list:
+    """The exterior rings (n, 2) of the polygons of `geom` larger than `min_area` m2."""
+    return [np.asarray(g.exterior.coords)[:, :2] for g in shapely.get_parts(geom)
+            if isinstance(g, shapely.Polygon) and g.area > min_area]
+
+
+#: a vehicle lane inside a junction is "off" the junction's polygon where this much of its
+#: middle (m, away from its ends) lies more than 0.3 m outside it
+JUNCTION_GAP_M = 1.0
+
+
+def junction_gaps(net) -> tuple[list, list]:
+    """The vehicle lanes inside junctions whose middle leaves their junction's polygon:
+    (their junction ids, the lanes); kept on the network.
+
+    netconvert's polygon of a junction on odd geometry can miss most of a turn: on a steep
+    Monaco hairpin (junction 7265762803) the turning lane ran over bare ground, and across a
+    walking area that the same polygon error put over the carriageway, 0.3 m above it; the
+    car ran onto it and stuck. Such lanes get a surface of their own (the walking areas of
+    their junction give way to it); the others are covered by their junction."""
+    cached = getattr(net, "_junction_gaps_cache", None)
+    if cached is not None:
+        return cached
+    out = _junction_gaps(net)
+    try:
+        net._junction_gaps_cache = out
+    except AttributeError:
+        pass
+    return out
+
+
+def _junction_gaps(net) -> tuple[list, list]:
+    jids, lanes = _internal_lanes(net)
+    if not lanes:
+        return [], []
+    ring_of, rings = {}, []
+    for j in sorted(set(jids)):
+        jn = net.junctions.get(j)
+        r = _open_ring(jn.shape[:, :2]) if jn is not None and jn.shape is not None and len(jn.shape) >= 3 else None
+        if r is not None:
+            ring_of[j] = len(rings)
+            rings.append(r)
+    if not rings:
+        return [], []
+    R, rg = _concat(rings)
+    jpoly = shapely.polygons(shapely.linearrings(R, indices=rg))
+    bad = ~shapely.is_valid(jpoly)
+    jpoly[bad] = shapely.make_valid(jpoly[bad])
+    shapely.prepare(jpoly)
+    # the middles, a point every half metre, without the first and last metre (where lanes
+    # meet); a point is off when more than 0.3 m outside the polygon
+    sel = [k for k, j in enumerate(jids) if j in ring_of and lanes[k].length > 2.0]
+    if not sel:
+        return [], []
+    P, g = _concat([lanes[k].shape[:, :2] for k in sel])
+    D, dg = resample_many(P, g, 0.5)
+    ds, tot = _arclen(D, dg)
+    mid = (ds > 1.0) & (ds < tot[dg] - 1.0)
+    D, dg = D[mid], dg[mid]
+    owner = np.array([ring_of[jids[k]] for k in sel])[dg]
+    out = np.flatnonzero(~shapely.contains_xy(jpoly[owner], D[:, 0], D[:, 1]))
+    out = out[shapely.distance(jpoly[owner[out]], shapely.points(D[out])) > 0.3]
+    if len(out):    # ... and not on another junction or a vehicle lane (netconvert's junctions overlap)
+        _, rlanes, _, _ = _road_lanes(net)
+        cover = np.concatenate([jpoly, _lane_strips([ln for ln in rlanes if ln.drivable])])
+        hit = shapely.STRtree(cover).query(shapely.points(D[out]), predicate="intersects")[0]
+        out = np.delete(out, np.unique(hit))
+    n_out = 0.5 * np.bincount(dg[out], minlength=len(sel))
+    off = [sel[i] for i in np.flatnonzero(n_out >= JUNCTION_GAP_M)]
+    return [jids[k] for k in off], [lanes[k] for k in off]
+
+
 def _dense_triangulated(shapes, step: float):
     """Polygon shapes as open rings with a point at least every `step` metres (their own
     points kept), triangulated: GEOS's constrained Delaunay triangulation where the ring is a
@@ -352,8 +456,9 @@ def _dense_triangulated(shapes, step: float):
 
 def carriageway_parts(net) -> list:
     """Where vehicles drive: each vehicle lane's strip (its SUMO shape buffered by half its
-    width, flat ends) and each junction polygon (repaired where invalid). They overlap; the
-    union is not formed (scenery tests points against the parts)."""
+    width, flat ends), each junction polygon (repaired where invalid) and the strips of the
+    vehicle lanes inside junctions that leave their polygon (:func:`junction_gaps`). They overlap; the union is not formed (scenery tests
+    points against the parts)."""
     _, lanes, _, _ = _road_lanes(net)
     drive = [l for l in lanes if l.drivable]
     out = []
@@ -370,6 +475,8 @@ def carriageway_parts(net) -> list:
         bad = ~shapely.is_valid(jp)
         jp[bad] = shapely.make_valid(jp[bad])
         out += list(jp)
+    _, off = junction_gaps(net)             # (a junction's polygon can miss part of a turn)
+    out += list(_lane_strips(off))
     return out
 
 
@@ -497,6 +604,14 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
 
     # 3. junctions, walking areas: polygons (constrained Delaunay) with heights from the lane
     # ends; the junctions first (they complete the levelling support)
+    # (a junction's vehicle lanes that leave its polygon get strips of their own, and its
+    # walking areas give way to them: see junction_gaps)
+    gap_j, gap_lanes = junction_gaps(net)
+    cuts = {}
+    if gap_lanes:
+        for j, strip in zip(gap_j, _lane_strips(gap_lanes)):
+            cuts.setdefault(j, []).append(strip)
+        cuts = {j: shapely.union_all(v) for j, v in cuts.items()}
     polys, pkind, pid, pel = [], [], [], []
     for j in net.junctions.values():
         if j.type != "internal" and len(j.shape) >= 3:
@@ -504,7 +619,15 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     crossings = []
     for e in net.edges.values():
         if e.function == "walkingarea" and e.lanes and len(e.lanes[0].shape) >= 3:
-            polys.append(e.lanes[0].shape); pkind.append("sidewalk"); pid.append(e.id); pel.append("walkingarea")
+            shapes = (e.lanes[0].shape,)
+            cut = cuts.get(e.id[1:e.id.rfind("_w")])
+            if cut is not None:
+                r = _open_ring(e.lanes[0].shape[:, :2])
+                wa = shapely.make_valid(shapely.Polygon(r)) if r is not None else None
+                if wa is not None and shapely.intersection(wa, cut).area > 0.5:
+                    shapes = _polygon_rings(shapely.difference(wa, cut))
+            for shp in shapes:
+                polys.append(shp); pkind.append("sidewalk"); pid.append(e.id); pel.append("walkingarea")
         elif e.function == "crossing" and e.lanes and len(e.lanes[0].shape) >= 2:
             crossings.append(e)
     def polygon_part(kind):
@@ -539,6 +662,27 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
                      [pel[k] for k in keep], [()] * len(keep), cen)
 
     junction_part = polygon_part("asphalt")
+    gap_part = None
+    if gap_lanes:
+        # heights: on the junction's own surface where they overlap it (no step between the
+        # two), else from the junction's lane ends like its points
+        GP, gg = _concat([ln.shape[:, :2] for ln in gap_lanes])
+        G, gg = resample_many(GP, gg, step)
+        ghw = np.array([ln.width for ln in gap_lanes])[gg] / 2.0
+        v, f, fg = _strips(G, gg, np.zeros(len(G)), ghw)
+        vz = _top_surface_z(v[:, :2], [junction_part]) if junction_part is not None else np.full(len(v), np.nan)
+        miss = ~np.isfinite(vz)
+        if miss.any():
+            vz[miss] = zfun_at(v[miss, :2], gap_j, np.repeat(gg, 2)[miss])
+        v[:, 2] = vz
+        gz = 0.5 * (vz[0::2] + vz[1::2])
+        n = len(gap_lanes)
+        gcen = np.column_stack([np.bincount(gg, G[:, 0], n), np.bincount(gg, G[:, 1], n)])
+        gcen /= np.maximum(np.bincount(gg, minlength=n), 1)[:, None]
+        gap_part = _part("asphalt", v, f, fg, n, [ln.id for ln in gap_lanes], ["junction_lane"] * n,
+                         [()] * n, gcen)
+        sup.append(np.column_stack([G, gz]))
+        sup_hw.append(ghw)
     geo.support_pts = np.vstack(sup)
     geo.support_hw = np.concatenate(sup_hw)
     if on_support is not None:
@@ -572,6 +716,8 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     # 6. the polygons in their classes (after the lanes), walking areas, crossings
     if junction_part is not None:
         parts["asphalt"].append(junction_part)
+    if gap_part is not None:
+        parts["asphalt"].append(gap_part)
     walk_part = polygon_part("sidewalk")
     if walk_part is not None:
         parts["sidewalk"].append(walk_part)
@@ -598,8 +744,9 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
                                       ["zebra"] * len(crossings), [()] * len(crossings), xcent))
     geo.parts = {k: v for k, v in parts.items() if v}
     geo.stats = {"lanes_meshed": len(lanes),
-                 "junctions_meshed": len(junction_part.ids) if junction_part is not None else 0,
-                 "walkingareas_meshed": sum(1 for e in pel if e == "walkingarea"),
+                 "junctions_meshed": len(set(junction_part.ids)) if junction_part is not None else 0,
+                 "walkingareas_meshed": len({i for i, e in zip(pid, pel) if e == "walkingarea"}),
+                 "junction_lanes_meshed": len(gap_lanes),
                  "crossings_meshed": len(crossings),
                  "faces": int(sum(len(p.faces) for ps in geo.parts.values() for p in ps))}
     return geo

@@ -345,6 +345,68 @@ def test_monaco_with_srtm(tmp_path):
     _check_crossings_on_the_road(out, w)
     _check_lanes_meet_junctions(out, w)
     _check_junctions_do_not_fold(out, w)
+    _check_turns_have_road(out, w)
+
+
+def _check_turns_have_road(out: Path, w: dict):
+    """Wherever a vehicle lane crosses a junction there is asphalt under its middle, and no
+    walking area stands above it as a curb. netconvert's polygon of a steep Monaco junction
+    (7265762803) missed most of a turn, and a walking area lay across it 0.3 m above the
+    bare ground: the car drove onto it and stuck."""
+    import types
+
+    import trimesh
+
+    from cosim.world import World
+    from netgen.roads import _arclen, _concat, _top_surface_z, resample_many
+
+    net = read_net(out / w["net_file"])
+    lanes = [ln for e in net.edges.values() if e.function == "internal" for ln in e.lanes
+             if ln.drivable and len(ln.shape) >= 2 and ln.length > 3.0]
+    assert len(lanes) > 1000
+    P, g = _concat([ln.shape[:, :2] for ln in lanes])
+    D, dg = resample_many(P, g, 1.0)
+    ds, tot = _arclen(D, dg)
+    mid = (ds > 1.5) & (ds < tot[dg] - 1.5)
+    D, dg = D[mid], dg[mid]
+    world = World(out)
+    parts = {"asphalt": []}
+    for c in world.chunks.values():
+        for tile in c.get("tiles", {}).values():
+            for kind in parts:
+                if kind in tile:
+                    m = trimesh.load(c["_base"] / tile[kind], process=False, force="mesh")
+                    parts[kind].append(types.SimpleNamespace(vertices=np.asarray(m.vertices),
+                                                             faces=np.asarray(m.faces)))
+    top_a = _top_surface_z(D, parts["asphalt"])
+    inside = np.all((D >= np.array(w["extent_m"][:2]) + 5.0) & (D <= np.array(w["extent_m"][2:]) - 5.0), axis=1)
+    # bare: no asphalt at the point nor 0.4 m around it; at most a metre of a lane (a corner)
+    near = np.isfinite(top_a)
+    for d in ((0.4, 0), (-0.4, 0), (0, 0.4), (0, -0.4)):
+        near |= np.isfinite(_top_surface_z(D + d, parts["asphalt"]))
+    bare = np.bincount(dg[~near & inside], minlength=len(lanes))
+    assert bare.max() <= 1, [(lanes[k].id, int(bare[k])) for k in np.argsort(-bare)[:5]]
+    # and none of the walking areas of the junctions with such lanes stands above them as a
+    # curb (0.1-1.5 m). (Elsewhere netconvert's geometry can still put a sidewalk over a
+    # turn: a corner's sidewalk lane, a neighbouring junction's walking area.)
+    from netgen.roads import junction_gaps
+
+    gap_j, off = junction_gaps(read_net(out / w["net_file"], internal_junctions=False))
+    assert len(off) > 20
+    walks = []
+    for c in world.chunks.values():
+        for tile in c.get("tiles", {}).values():
+            if "sidewalk" in tile:
+                sc = trimesh.load(c["_base"] / tile["sidewalk"], process=False, force="scene", split_groups=True,
+                                  group_material=False)
+                walks += [types.SimpleNamespace(vertices=np.asarray(m.vertices), faces=np.asarray(m.faces))
+                          for name, m in sc.geometry.items()
+                          if name.startswith("walkingarea/:") and name[13:name.rfind("_w")] in set(gap_j)]
+    assert walks
+    mine = np.isin(dg, [k for k, ln in enumerate(lanes) if ln.id in {o.id for o in off}])
+    curb = np.where(inside & mine, _top_surface_z(D, walks) - top_a, np.nan)
+    bad = np.flatnonzero((curb > 0.10) & (curb < 1.5))
+    assert len(bad) == 0, [(lanes[dg[k]].id, round(float(curb[k]), 2)) for k in bad[:10]]
 
 
 def _check_junctions_do_not_fold(out: Path, w: dict):
