@@ -723,11 +723,20 @@ class SumoTraffic(Component):
         return [tc.VAR_POSITION, tc.VAR_ANGLE, tc.VAR_SPEED, tc.VAR_VEHICLE, tc.VAR_TYPE,
                 tc.VAR_SLOPE]
 
-    def _type_dims(self, type_id: str) -> tuple[float, float, float]:
+    def _type_dims(self, type_id: str, person: str | None = None) -> tuple[float, float, float]:
+        """(length, width, height) of a vehicle type; for a person whose type SUMO does not
+        list (the copy it makes when a person's speed is set, e.g. ``ped@ped280~1@ped280~2``
+        after a network swap), the person's own."""
         dims = self._dims_cache.get(type_id)
         if dims is None:
-            vt = self._sim.vehicletype
-            dims = (vt.getLength(type_id), vt.getWidth(type_id), vt.getHeight(type_id))
+            try:
+                vt = self._sim.vehicletype
+                dims = (vt.getLength(type_id), vt.getWidth(type_id), vt.getHeight(type_id))
+            except self._exc:
+                if person is None:
+                    raise
+                pe = self._sim.person
+                return pe.getLength(person), pe.getWidth(person), pe.getHeight(person)
             self._dims_cache[type_id] = dims
         return dims
 
@@ -827,7 +836,7 @@ class SumoTraffic(Component):
                     continue                 # riding: drawn as part of the vehicle
                 kind[k] = "person"
                 lanes[k] = ""
-                length, width, height = self._type_dims(v[tc.VAR_TYPE])
+                length, width, height = self._type_dims(v[tc.VAR_TYPE], aid)
             else:
                 kind[k] = v.get(tc.VAR_VEHICLECLASS, "passenger")
                 lanes[k] = v.get(tc.VAR_LANE_ID, "")
@@ -1302,7 +1311,10 @@ class SumoTraffic(Component):
             person = kind == "person"
             if person:
                 p = s.person
-                tid = p.getTypeID(aid)
+                # (a person whose speed was set has a type of its own, "<type>@<person>",
+                # which SUMO's vehicle-type lookup does not know: the kept person gets the
+                # type it was made from)
+                tid = p.getTypeID(aid).split("@")[0]
                 edge = p.getRoadID(aid)
                 edges = list(p.getEdges(aid))
                 edges = edges[self._person_walk_index(aid, edge, edges):]

@@ -312,6 +312,11 @@ def test_pedestrian_stops_rather_than_walk_into_the_ego(traffic, case):
     assert t.stats.persons_held == 1
     assert 25.0 < walked < 40.0 - 2.25                 # waiting behind the car
     assert s.person.getSpeed("walker") == 0.0
+    # mirrored while held, at its own size (SUMO gives a person whose speed was set a type of
+    # its own, which its vehicle-type lookup may not know: a motorway run ended on one)
+    snap = t.actors_near(cx, cy, 30.0)
+    i = snap.index("walker")
+    assert snap.kind[i] == "person" and 0.1 < snap.length[i] < 1.0 and 1.0 < snap.height[i] < 2.5
     # the car drives away: the walker goes on at its own pace and arrives
     far = passenger_lanes(s, 10.0)[0][0]
     gx, gy, gang = lane_pose(s, far, 5.0)
@@ -610,3 +615,17 @@ def test_swap_network_keeps_actors_near_ego(helsinki_net, dense, traffic):
     alive = [n for n in mapping.values() if n in s.vehicle.getIDList() or n in s.person.getIDList()]
     assert len(alive) >= 0.8 * len(mapping)
     assert not bad, f"carried persons report a wrong speed after the swap: {bad[:3]}"
+    # a second swap carries the persons carried by the first, whose pace was set (SUMO gave
+    # each a type of its own, "<type>@<person>", which its vehicle-type lookup may not know:
+    # a motorway run ended on "ped@ped280~1@ped280~2")
+    walkers = [n for n in mapping.values() if n in s.person.getIDList()]
+    assert any("@" in s.person.getTypeID(p) for p in walkers)
+    ego = t.ego_state()
+    mapping2 = t.swap_network(helsinki_net, dense.route_files, keep_radius=70.0)
+    after2 = t.actors_near(ego["x"], ego["y"], 120.0)
+    again = [mapping2[p] for p in walkers if p in mapping2]
+    assert again and all(p in after2.ids for p in again)
+    assert all(s.person.getTypeID(p).count("@") <= 1 for p in again)
+    for _ in range(10):
+        t.step()
+        t.actors_near(ego["x"], ego["y"], 120.0)
