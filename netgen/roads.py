@@ -379,10 +379,18 @@ def _junction_gaps(net) -> tuple[list, list]:
     out = np.flatnonzero(~shapely.contains_xy(jpoly[owner], D[:, 0], D[:, 1]))
     out = out[shapely.distance(jpoly[owner[out]], shapely.points(D[out])) > 0.3]
     if len(out):    # ... and not on another junction or a vehicle lane (netconvert's junctions overlap)
+        pts = shapely.points(D[out])
+        on = shapely.STRtree(jpoly).query(pts, predicate="intersects")[0]
         _, rlanes, _, _ = _road_lanes(net)
-        cover = np.concatenate([jpoly, _lane_strips([ln for ln in rlanes if ln.drivable])])
-        hit = shapely.STRtree(cover).query(shapely.points(D[out]), predicate="intersects")[0]
-        out = np.delete(out, np.unique(hit))
+        drive = [ln for ln in rlanes if ln.drivable]
+        if drive:
+            LP, lg = _concat([ln.shape[:, :2] for ln in drive])
+            lines = shapely.linestrings(LP, indices=lg)
+            hw = np.array([ln.width for ln in drive]) / 2.0
+            pi, li = shapely.STRtree(lines).query(pts, predicate="dwithin", distance=float(hw.max()))
+            near = shapely.distance(pts[pi], lines[li]) <= hw[li]
+            on = np.concatenate([on, pi[near]])
+        out = np.delete(out, np.unique(on))
     n_out = 0.5 * np.bincount(dg[out], minlength=len(sel))
     off = [sel[i] for i in np.flatnonzero(n_out >= JUNCTION_GAP_M)]
     return [jids[k] for k in off], [lanes[k] for k in off]
