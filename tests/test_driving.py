@@ -357,10 +357,16 @@ def test_holds_speed_on_steep_monaco_street(monaco, tmp_path):
     tel = tmp_path / "monaco.jsonl"
     sim = start_sim(monaco, start=MC_START, goal=MC_GOAL, speed_mps=8.0, duration_s=80, telemetry=str(tel))
     try:
+        # placed on the sloping street, tilted with it (placed level, its rear started inside
+        # the road, it reared up and a collision was logged at t = 0.3 s)
+        st = sim.vehicle.state()
+        grade = float(sim.world.slope_pitch(st.x, st.y, st.yaw)[0])     # the ground's, nose up > 0
+        assert abs(st.pitch) > 0.05 and st.pitch * grade < 0, (st.pitch, grade)   # (pitch > 0: nose down)
         summary = sim.run()
     finally:
         sim.teardown()
     assert summary.arrived, summary.line()
+    assert summary.ego_collisions == 0, sim.collision_log
     rows = [json.loads(l) for l in tel.read_text().splitlines()]
     xyz = np.array([(r["x"], r["y"], r["alt_m"]) for r in rows])
     # the grade from the car's own track: height gained over distance driven in +-1 s
