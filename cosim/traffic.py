@@ -64,6 +64,7 @@ EGO_MATCH_RADIUS_M = 15.0      # the ego is mapped onto a lane within this dista
 PERSON_YIELD_RANGE_M = 15.0    # pedestrians this near the ego are checked (see _persons_yield)
 PERSON_YIELD_MARGIN_M = 0.5    # they stop this far outside the ego's footprint
 PERSON_YIELD_HORIZON = (0.25, 0.5, 0.75, 1.0)   # s ahead at which their paths are tested
+PERSON_DIMS = (0.215, 0.478, 1.719)  # SUMO's default pedestrian type: length, width, height (m)
 EGO_UNSTICK_M = 0.015       # see _after_step: a long-waiting ego jitters this much in SUMO
 
 _LIBSUMO_OWNER = None   # the SumoTraffic running on libsumo in this process, if any
@@ -726,7 +727,8 @@ class SumoTraffic(Component):
     def _type_dims(self, type_id: str, person: str | None = None) -> tuple[float, float, float]:
         """(length, width, height) of a vehicle type; for a person whose type SUMO does not
         list (the copy it makes when a person's speed is set, e.g. ``ped@ped280~1@ped280~2``
-        after a network swap), the person's own."""
+        after a network swap), the person's own, or SUMO's default pedestrian size when SUMO
+        does not know the person either (a 30-minute run met one carried by a swap)."""
         dims = self._dims_cache.get(type_id)
         if dims is None:
             try:
@@ -735,8 +737,11 @@ class SumoTraffic(Component):
             except self._exc:
                 if person is None:
                     raise
-                pe = self._sim.person
-                return pe.getLength(person), pe.getWidth(person), pe.getHeight(person)
+                try:
+                    pe = self._sim.person
+                    return pe.getLength(person), pe.getWidth(person), pe.getHeight(person)
+                except self._exc:       # (listed by the context, unknown to the person API)
+                    return PERSON_DIMS
             self._dims_cache[type_id] = dims
         return dims
 

@@ -317,6 +317,15 @@ def test_pedestrian_stops_rather_than_walk_into_the_ego(traffic, case):
     snap = t.actors_near(cx, cy, 30.0)
     i = snap.index("walker")
     assert snap.kind[i] == "person" and 0.1 < snap.length[i] < 1.0 and 1.0 < snap.height[i] < 2.5
+    # a type SUMO does not list: the person's own size; a person SUMO no longer knows (a
+    # 30-minute run's context listed one carried by a swap): SUMO's default pedestrian size
+    from cosim.traffic import PERSON_DIMS
+
+    assert t._type_dims("no-such-type", "walker") == pytest.approx(
+        (s.person.getLength("walker"), s.person.getWidth("walker"), s.person.getHeight("walker")))
+    assert t._type_dims("no-such-type", "no-such-person") == PERSON_DIMS
+    with pytest.raises(Exception):
+        t._type_dims("no-such-type")            # (a vehicle's type must be known)
     # the car drives away: the walker goes on at its own pace and arrives
     far = passenger_lanes(s, 10.0)[0][0]
     gx, gy, gang = lane_pose(s, far, 5.0)
