@@ -20,6 +20,10 @@ per-lane Python would dominate the build).
 The carriageway (where vehicles drive: vehicle lanes and junctions) is given as overlapping
 polygons, :func:`carriageway_parts`, made on demand from the network alone.
 
+A vehicle lane through a junction whose polygon misses part of it (netconvert's polygon of a
+junction on odd geometry can) gets a strip of its own, element ``junction_lane``
+(:func:`junction_gaps`).
+
 Mesh classes: ``asphalt`` (vehicle lanes, junctions), ``sidewalk`` (pedestrian-only
 lanes and walking areas, 2 cm higher), ``rail`` (train-only tracks) and ``marking`` (lane lines and zebra stripes, visual
 only, 1.5 cm above the surface). Each piece keeps its SUMO id and the OSM way ids.
@@ -465,8 +469,8 @@ def _dense_triangulated(shapes, step: float):
 def carriageway_parts(net) -> list:
     """Where vehicles drive: each vehicle lane's strip (its SUMO shape buffered by half its
     width, flat ends), each junction polygon (repaired where invalid) and the strips of the
-    vehicle lanes inside junctions that leave their polygon (:func:`junction_gaps`). They overlap; the union is not formed (scenery tests
-    points against the parts)."""
+    vehicle lanes inside junctions that leave their polygon (:func:`junction_gaps`). They
+    overlap; the union is not formed (scenery tests points against the parts)."""
     _, lanes, _, _ = _road_lanes(net)
     drive = [l for l in lanes if l.drivable]
     out = []
