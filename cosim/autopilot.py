@@ -72,6 +72,7 @@ NEAR_MISS_TTC_S = 1.5
 NEAR_MISS_GAP_M = 2.0
 SENSE_RANGE_M = 80.0       # obstacles on the path are considered up to here
 CROSS_LANE_MARGIN_M = 3.5  # a crossing vehicle's road may have a lane nearer than its own
+HARD_DECEL = 6.0           # m/s2: the car's firm braking (what "can still stop before it" means)
 OSM_SIGN_RADIUS_M = 20.0   # an OSM stop sign belongs to an approach whose stop line is this close
 YIELD_STATES = set("m=goO")
 RED_STATES = set("rRu")
@@ -373,6 +374,7 @@ class Autopilot:
                     foes = self._foe_lanes(path, s_here)
                     mine = path.lanes_between(s_here - 5.0, s_here + SENSE_RANGE_M)
                     my_edges = {ln.rsplit("_", 1)[0] for ln in mine}
+                    my_junctions = {ln[1:ln.rfind("_", 0, ln.rfind("_"))] for ln in mine if ln.startswith(":")}
                 lanes = getattr(actors, "lane", None)
                 if lanes is not None:
                     lane = lanes[i] or None     # from the step's context subscription
@@ -388,6 +390,11 @@ class Autopilot:
                             crossing = True
                         elif not crossing:
                             continue    # parallel or oncoming, in its own lanes
+                        elif not lane.startswith(":") and self._at_path_junction(tr, lane, my_junctions):
+                            # on a road into (or out of) a junction of the path: the junction's
+                            # right of way decides (_junctions), not the crossing time (a car
+                            # 17 m up a side street stopped the ego inside a Helsinki junction)
+                            continue
                         # (else a vehicle crossing the path on a lane SUMO does not make a foe:
                         # a road that SUMO's network takes over or under the path, which this
                         # world, draped on the terrain, has at grade; the timing below decides)
@@ -425,6 +432,11 @@ class Autopilot:
                 if t_arr > t_out + 1.0 or t_pass < t_in - 0.5:
                     continue                          # it is gone before, or comes after, the ego
             if crossing and not person and not inside:
+                # past the point of no return (its track is nearer than the ego can stop in,
+                # or already under the car), braking would leave the ego standing in its way:
+                # go on (a Helsinki drive braked at 6.6 m/s2 for a gap of 0 m and stopped there)
+                if gap < v_ego * v_ego / (2.0 * HARD_DECEL):
+                    continue
                 # a vehicle crossing the path: stop before its road, not just before its lane
                 # (stopped 4 m before a car in the far lane of a two-lane road, the car's nose
                 # was in the near lane, and a truck in it hit the car)
@@ -432,6 +444,17 @@ class Autopilot:
             if best is None or gap < best.gap:
                 best = Lead(max(0.0, gap), lead_v, "person" if person else "vehicle", "actors", str(actors.ids[i]))
         return best
+
+    @staticmethod
+    def _at_path_junction(tr, lane: str, junctions: set) -> bool:
+        """Does the edge of `lane` end or start at one of `junctions`?"""
+        if not junctions:
+            return False
+        edge = lane.rsplit("_", 1)[0]
+        try:
+            return tr.sumo.edge.getToJunction(edge) in junctions or tr.sumo.edge.getFromJunction(edge) in junctions
+        except Exception:
+            return False
 
     def _sumo_leader(self, s_here, path) -> Lead | None:
         tr = getattr(self.sim, "traffic", None)
