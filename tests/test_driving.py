@@ -514,3 +514,53 @@ def test_autopilot_steering_holds_a_curve_on_the_physics_car(radius, angle, spee
     assert s_here > path.length - 21.0                       # drove the whole curve
     assert abs(math.remainder(turned - math.radians(angle), 2 * math.pi)) < 0.05
     assert max(offs) < limit, max(offs)
+
+
+def test_a_car_coming_to_the_same_junction_is_left_to_its_right_of_way(helsinki):
+    """A vehicle crossing the path is timed against the car (a road taken over or under the
+    path, which this world has at grade) unless it is on a road into or out of a junction
+    the path crosses: there the junction's right of way decides (a car 17 m up a side street
+    stopped the ego inside a Helsinki junction, braking hard at a gap of 0 m). And a crossing
+    vehicle whose track is nearer than the car can stop in does not stop it there."""
+    import types
+
+    from cosim.traffic import ActorsSnapshot
+
+    sim = start_sim(helsinki, start=HEL_MID, goal=HEL_GOAL)
+    try:
+        s = sim.traffic.sumo
+        ap, path = sim.driver, sim.path
+        st = sim.vehicle.state()
+        s_car = s_of(sim, st.x, st.y)[0]
+        # the first junction ahead, and a road into it that the path does not take
+        k = next(k for k in range(len(path.s)) if path.s[k] > s_car and path.lane_of[k][0].startswith(":"))
+        lane_in = path.lane_of[k][0]
+        junction = lane_in[1:lane_in.rfind("_", 0, lane_in.rfind("_"))]
+        side = next(e for e in s.junction.getIncomingEdges(junction)
+                    if not e.startswith(":") and e not in path.edges)
+        elsewhere = next(e for e in s.edge.getIDList() if not e.startswith(":")
+                         and junction not in (s.edge.getFromJunction(e), s.edge.getToJunction(e))
+                         and e not in path.edges)
+        s_e = float(path.s[k]) - 10.0               # the car 10 m before the junction at 5 m/s
+        ex, ey = path.point_at(s_e)
+        car = types.SimpleNamespace(x=float(ex), y=float(ey), speed=5.0)
+
+        def crossing_car(ahead: float, lane: str):
+            """A car 10 m to the left of the path, driving at 8 m/s straight at it, crossing
+            `ahead` m beyond the ego's front bumper."""
+            s_c = s_e + ap.front + 0.9 + ahead
+            h = path.heading_at(s_c)
+            px, py = path.point_at(s_c)
+            x, y = px - 10.0 * math.sin(h), py + 10.0 * math.cos(h)
+            one = lambda v: np.array([v])                       # noqa: E731
+            snap = ActorsSnapshot(0.0, np.array(["x1"], dtype=object), np.array(["passenger"], dtype=object),
+                                  one(x), one(y), one(h - math.pi / 2), one(4.5), one(1.8), one(1.5), one(8.0),
+                                  one(0.0), np.array([lane], dtype=object))
+            return ap._actors_on_path(snap, car, s_e, path)
+
+        lead = crossing_car(5.0, f"{elsewhere}_0")             # a road not at the path's junctions
+        assert lead is not None and lead.actor == "x1" and lead.gap < 5.0
+        assert crossing_car(5.0, f"{side}_0") is None           # a road into the junction
+        assert crossing_car(0.5, f"{elsewhere}_0") is None      # nearer than 5 m/s stops in (2.1 m)
+    finally:
+        sim.teardown()
