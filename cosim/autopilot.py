@@ -54,7 +54,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .driving import PurePursuit, SpeedController, _drivable_lanes, curve_speed, plan_speed, stop_speed
+from .driving import (PurePursuit, SpeedController, _drivable_lanes, curve_speed, junction_of, plan_speed,
+                      stop_speed)
 
 log = logging.getLogger("cosim.autopilot")
 
@@ -374,7 +375,7 @@ class Autopilot:
                     foes = self._foe_lanes(path, s_here)
                     mine = path.lanes_between(s_here - 5.0, s_here + SENSE_RANGE_M)
                     my_edges = {ln.rsplit("_", 1)[0] for ln in mine}
-                    my_junctions = {ln[1:ln.rfind("_", 0, ln.rfind("_"))] for ln in mine if ln.startswith(":")}
+                    my_junctions = {junction_of(ln) for ln in mine if ln.startswith(":")}
                 lanes = getattr(actors, "lane", None)
                 if lanes is not None:
                     lane = lanes[i] or None     # from the step's context subscription

@@ -468,7 +468,7 @@ class EgoVehicle:
         One ray per wheel and one at the centre, from ``reach`` above ``z_hint`` (the ground
         model's height there) to ``reach`` below, skipping the car itself; a plane fitted to
         the hits gives the height under the footprint centre, the pitch and the roll. (Placed
-        level on a 20 % Monaco street, the rear of the body started 0.15 m inside the road and
+        level on a 9 % Monaco street, the rear of the body started 0.15 m inside the road and
         the car reared up.) Returns (z, pitch, roll); with fewer than three hits, (z_hint, 0,
         0) and the car level."""
         cid = self.client

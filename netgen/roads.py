@@ -311,13 +311,13 @@ def _internal_lanes(net):
     return out
 
 
-def _lane_strips(lanes):
+def _lane_strips(lanes, mitre_limit: float = 2.0):
     """Shapely strips of lanes: the centreline buffered by half the width, flat ends."""
     if not lanes:
         return np.empty(0, dtype=object)
     P, g = _concat([ln.shape[:, :2] for ln in lanes])
     return shapely.buffer(shapely.linestrings(P, indices=g), np.array([ln.width for ln in lanes]) / 2.0,
-                          cap_style="flat", join_style="mitre", mitre_limit=2.0)
+                          cap_style="flat", join_style="mitre", mitre_limit=mitre_limit)
 
 
 def _polygon_rings(geom, min_area: float = 0.5) -> list:
@@ -473,12 +473,7 @@ def carriageway_parts(net) -> list:
     overlap; the union is not formed (scenery tests points against the parts)."""
     _, lanes, _, _ = _road_lanes(net)
     drive = [l for l in lanes if l.drivable]
-    out = []
-    if drive:
-        DP, dg = _concat([l.shape for l in drive])
-        lines = shapely.linestrings(DP, indices=dg)
-        width = np.array([l.width for l in drive])
-        out += list(shapely.buffer(lines, width / 2.0, cap_style="flat", join_style="mitre"))
+    out = list(_lane_strips(drive, mitre_limit=5.0))       # (GEOS's default mitre limit)
     rings = [r for r in (_open_ring(j.shape) for j in net.junctions.values()
                          if j.type != "internal" and len(j.shape) >= 3) if r is not None]
     if rings:
@@ -756,8 +751,8 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
                                       ["zebra"] * len(crossings), [()] * len(crossings), xcent))
     geo.parts = {k: v for k, v in parts.items() if v}
     geo.stats = {"lanes_meshed": len(lanes),
-                 "junctions_meshed": len(set(junction_part.ids)) if junction_part is not None else 0,
-                 "walkingareas_meshed": len({i for i, e in zip(pid, pel) if e == "walkingarea"}),
+                 "junctions_meshed": len(junction_part.ids) if junction_part is not None else 0,
+                 "walkingareas_meshed": len({i for i, e in zip(pid, pel) if e == "walkingarea"}),  # (cut: pieces)
                  "junction_lanes_meshed": len(gap_lanes),
                  "crossings_meshed": len(crossings),
                  "faces": int(sum(len(p.faces) for ps in geo.parts.values() for p in ps))}
