@@ -58,7 +58,9 @@ class SimConfig:
     step_length_s: float = 0.1
     physics_hz: float | None = None       # default: the vehicle model's recommended rate
     sensor_range_m: float = 100.0         # lidar / camera distance (the loaded world must cover it)
-    mirror_radius_m: float = 150.0        # SUMO actors within this radius are mirrored in PyBullet
+    # SUMO actors within this radius are mirrored in PyBullet: the sensor range and 20 m more
+    # (two actors closing head-on at 30 m/s each take more than three SUMO steps to cross it)
+    mirror_radius_m: float = 120.0
     telemetry: str | None = None
     gui: bool = False                     # PyBullet's 3D window
     render: bool = False                  # load visual meshes for camera images (the Qt GUI)
@@ -89,6 +91,9 @@ class SimConfig:
             self.backend = "traci"
         if not 10 <= self.sensor_range_m <= 1000:
             raise InputError("sensor range must be 10..1000 m")
+        if not self.sensor_range_m <= self.mirror_radius_m <= 2000:
+            raise InputError(f"mirror radius must be at least the sensor range ({self.sensor_range_m:g} m) "
+                             f"and at most 2000 m, got {self.mirror_radius_m:g} m")
         return self
 
     # --- scenario files ------------------------------------------------------------------

@@ -112,9 +112,20 @@ class _LogForward(logging.Handler):
             pass
 
 
+def _plain_types() -> frozenset:
+    from cosim.traffic import ActorsSnapshot
+
+    return frozenset({str, int, float, bool, type(None), bytes, ActorsSnapshot})
+
+
+_PLAIN: frozenset = frozenset()
+
+
 def _portable(value, depth: int = 0):
     """``value`` if it pickles, else the same shape with SWIG objects (libsumo's TraCIStage,
     TraCICollision, ...) turned into namespaces of their public data attributes."""
+    if type(value) in _PLAIN:       # (pickled once, by the send: not twice)
+        return value
     try:
         pickle.dumps(value)
         return value
@@ -177,6 +188,8 @@ def _serve(conn):
 
     from cosim.traffic import SumoTraffic
 
+    global _PLAIN
+    _PLAIN = _plain_types()
     faulthandler.enable()      # a crash inside libsumo names the call on stderr
     args, kwargs, log_level = conn.recv()
 
@@ -196,6 +209,8 @@ def _serve(conn):
         status, value = "ok", None
         try:
             if op == "step":
+                if a:                          # the ego's pose, sent with the step
+                    t.set_ego_pose(*a, **kw)
                 t.step()
                 status, value = "step", {}
                 for key in path:               # reads the caller will make: answered now
@@ -313,6 +328,7 @@ class TrafficProcess(Component):
         self._actors_req = None    # (x, y, radius) of the actors query sent with the step
         self._actors_radius = None
         self._last_pose = None
+        self._pending_pose = None  # set_ego_pose's call, sent with the next step (or before any other request)
         self.calls = 0           # requests sent (for benchmarks)
         self.waits = 0           # answers waited for
         self._next: dict | None = None   # SUMO started ahead on the next network (prepare_network)
@@ -340,6 +356,7 @@ class TrafficProcess(Component):
         proc, conn = self._proc, self._conn
         self._proc = self._conn = None
         self._inflight.clear()
+        self._pending_pose = None
         self._adopted = None
         if proc is not None:
             _ask_exit(proc, conn)
@@ -386,6 +403,9 @@ class TrafficProcess(Component):
         """Wait for every request in flight (a step, a pose) to be answered; raise the first
         error among them. Returns the last answer (status, value)."""
         out = None
+        if self._pending_pose is not None:
+            pose, self._pending_pose = self._pending_pose, None
+            self._post(("call", ("set_ego_pose",)) + pose)
         if self._inflight:
             self.waits += 1
         while self._inflight:
@@ -394,6 +414,9 @@ class TrafficProcess(Component):
 
     def _post(self, msg, tag: str | None = None) -> None:
         """Send a request without waiting for its answer."""
+        if self._pending_pose is not None and msg[0] != "step":
+            pose, self._pending_pose = self._pending_pose, None
+            self._post(("call", ("set_ego_pose",)) + pose)
         if self._conn is None:
             raise SimulationError("SUMO is not running: call setup() first")
         self.calls += 1
@@ -473,7 +496,8 @@ class TrafficProcess(Component):
         if self._last_pose is not None and self._actors_radius is not None:
             self._actors_req = (self._last_pose[0], self._last_pose[1], self._actors_radius + ACTORS_MARGIN_M)
             keys.append((("actors_near",), self._actors_req))
-        self._post(("step", tuple(keys), (), {}))
+        pose, self._pending_pose = self._pending_pose or ((), {}), None
+        self._post(("step", tuple(keys)) + pose)
 
     # --- the next network, started ahead --------------------------------------------------
     def prepare_network(self, new_net, new_routes=()) -> None:
@@ -636,11 +660,15 @@ class TrafficProcess(Component):
             self._lagged = False
 
     def set_ego_pose(self, x, y, *args, **kwargs) -> None:
-        """Sent without waiting (its errors come with the next answer)."""
+        """Sent with the next step, or before any other request, whichever comes first
+        (one message less a frame); its errors come with the next answer."""
         self._last_pose = (float(x), float(y))
         # (SUMO moves the ego in its next step: reads until then see the state before, as
         # in-process; so the prefetched answers stay valid)
-        self._post(("call", ("set_ego_pose",), (x, y) + args, kwargs))
+        if self._pending_pose is not None:
+            pose, self._pending_pose = self._pending_pose, None
+            self._post(("call", ("set_ego_pose",)) + pose)
+        self._pending_pose = ((x, y) + args, kwargs)
 
     def actors_near(self, x: float, y: float, radius: float):
         """As SumoTraffic.actors_near; served from the actors sent with the step when they

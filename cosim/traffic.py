@@ -271,6 +271,7 @@ class SumoTraffic(Component):
         self._lane_tls: dict[str, tuple[str, int]] = {}
         self._exc: tuple = (Exception,)
         self._dims_cache: dict[str, tuple[float, float, float]] = {}
+        self._vclass_cache: dict[str, tuple[str, float, float, float]] = {}
         self._held: dict[str, float] = {}  # pedestrians stopped for the ego: id -> their own pace
         self._ego_ctx_res: dict | None = None  # this step's context results (_ego_context)
         self._moved_persons: dict = {}     # persons a swap placed by moveToXY: id -> (x, y, speed)
@@ -713,8 +714,9 @@ class SumoTraffic(Component):
     # --- actors -------------------------------------------------------------------------
     def _vehicle_vars(self):
         tc = self._tc
-        return [tc.VAR_POSITION, tc.VAR_ANGLE, tc.VAR_SPEED, tc.VAR_VEHICLECLASS, tc.VAR_LENGTH,
-                tc.VAR_WIDTH, tc.VAR_HEIGHT, tc.VAR_SLOPE, tc.VAR_LANE_ID]
+        # (a vehicle's class and size are its type's: read once per type, _vtype_info; a
+        # vehicle whose size is changed alone gets a type of its own in SUMO)
+        return [tc.VAR_POSITION, tc.VAR_ANGLE, tc.VAR_SPEED, tc.VAR_TYPE, tc.VAR_SLOPE, tc.VAR_LANE_ID]
 
     def _person_vars(self):
         tc = self._tc
@@ -723,6 +725,15 @@ class SumoTraffic(Component):
         # type (libsumo files a person context's VAR_LENGTH under the type id, not the person)
         return [tc.VAR_POSITION, tc.VAR_ANGLE, tc.VAR_SPEED, tc.VAR_VEHICLE, tc.VAR_TYPE,
                 tc.VAR_SLOPE]
+
+    def _vtype_info(self, type_id: str) -> tuple[str, float, float, float]:
+        """(vehicle class, length, width, height) of a vehicle type, cached."""
+        info = self._vclass_cache.get(type_id)
+        if info is None:
+            vt = self._sim.vehicletype
+            info = (vt.getVehicleClass(type_id),) + self._type_dims(type_id)
+            self._vclass_cache[type_id] = info
+        return info
 
     def _type_dims(self, type_id: str, person: str | None = None) -> tuple[float, float, float]:
         """(length, width, height) of a vehicle type; for a person whose type SUMO does not
@@ -827,37 +838,36 @@ class SumoTraffic(Component):
             res = self._context_results(float(x), float(y), float(radius))
         except self._exc as e:
             raise SimulationError(f"SUMO actor query failed: {e}") from None
-        n = len(res)
-        ids = np.empty(n, dtype=object)
-        kind = np.empty(n, dtype=object)
-        lanes = np.empty(n, dtype=object)
-        a = np.zeros((8, n))
-        k = 0
+        P, VEH, TYPE, SPEED, ANGLE = tc.VAR_POSITION, tc.VAR_VEHICLE, tc.VAR_TYPE, tc.VAR_SPEED, tc.VAR_ANGLE
+        SLOPE, LANE = tc.VAR_SLOPE, tc.VAR_LANE_ID
+        ids, kind, lanes, rows = [], [], [], []
         for aid, v in res.items():
-            if aid == EGO_ID or tc.VAR_POSITION not in v:
+            pos = v.get(P)
+            if pos is None or aid == EGO_ID:
                 continue
-            if tc.VAR_VEHICLE in v:          # a person
-                if v[tc.VAR_VEHICLE]:
+            if VEH in v:                     # a person
+                if v[VEH]:
                     continue                 # riding: drawn as part of the vehicle
-                kind[k] = "person"
-                lanes[k] = ""
-                length, width, height = self._type_dims(v[tc.VAR_TYPE], aid)
+                kind.append("person")
+                lanes.append("")
+                length, width, height = self._type_dims(v[TYPE], aid)
             else:
-                kind[k] = v.get(tc.VAR_VEHICLECLASS, "passenger")
-                lanes[k] = v.get(tc.VAR_LANE_ID, "")
-                length, width, height = v[tc.VAR_LENGTH], v[tc.VAR_WIDTH], v[tc.VAR_HEIGHT]
-            ids[k] = aid
-            px, py = v[tc.VAR_POSITION][:2]
-            speed = v[tc.VAR_SPEED]
-            moved = self._moved_persons.get(aid)
-            if moved is not None:
-                if math.hypot(px - moved[0], py - moved[1]) < 0.05:
-                    speed = moved[2]         # (SUMO's speed from the insertion jump: see _insert_kept)
-                else:
-                    del self._moved_persons[aid]
-            a[:, k] = (px, py, v[tc.VAR_ANGLE], length, width, height, speed, v.get(tc.VAR_SLOPE, 0.0))
-            k += 1
-        ids, kind, lanes, a = ids[:k], kind[:k], lanes[:k], a[:, :k]
+                vclass, length, width, height = self._vtype_info(v[TYPE])
+                kind.append(vclass)
+                lanes.append(v.get(LANE, ""))
+            ids.append(aid)
+            speed = v[SPEED]
+            if self._moved_persons:
+                moved = self._moved_persons.get(aid)
+                if moved is not None:
+                    if math.hypot(pos[0] - moved[0], pos[1] - moved[1]) < 0.05:
+                        speed = moved[2]     # (SUMO's speed from the insertion jump: see _insert_kept)
+                    else:
+                        del self._moved_persons[aid]
+            rows.append((pos[0], pos[1], v[ANGLE], length, width, height, speed, v.get(SLOPE, 0.0)))
+        k = len(rows)
+        a = np.array(rows, dtype=float).T if k else np.zeros((8, 0))
+        ids, kind, lanes = (np.array(x, dtype=object) for x in (ids, kind, lanes))
         cx, cy = front_to_center(a[0], a[1], a[2], a[3])
         cx, cy = np.atleast_1d(cx), np.atleast_1d(cy)
         keep = np.hypot(cx - x, cy - y) <= radius
