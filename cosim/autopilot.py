@@ -74,6 +74,7 @@ NEAR_MISS_GAP_M = 2.0
 SENSE_RANGE_M = 80.0       # obstacles on the path are considered up to here
 CROSS_LANE_MARGIN_M = 3.5  # a crossing vehicle's road may have a lane nearer than its own
 HARD_DECEL = 6.0           # m/s2: the car's firm braking (what "can still stop before it" means)
+EXPECT_AHEAD_M = 40.0      # reads are asked ahead (_expect) this far beyond where they are needed
 OSM_SIGN_RADIUS_M = 20.0   # an OSM stop sign belongs to an approach whose stop line is this close
 YIELD_STATES = set("m=goO")
 RED_STATES = set("rRu")
@@ -205,6 +206,7 @@ class Autopilot:
         s_edge = self._world_edge(path, s_here, horizon)
         if s_edge is not None:
             targets.append((stop_speed(s_edge - s_here - self.front - 5.0, COMFORT_DECEL), "edge of the world"))
+        self._expect(path, s_here, v, actors)
         # obstacles ahead: adaptive cruise
         self.lead = self._sense(st, s_here, actors, path)
         self.lead_gap = self.lead.gap if self.lead else None
@@ -308,6 +310,58 @@ class Autopilot:
         if not cands:
             return None
         return min(cands, key=lambda c: c.gap)
+
+    def _expect(self, path, s_here, v, actors) -> None:
+        """Tell SUMO's worker process (``TrafficProcess.expect``) what this driver will read
+        soon, so that those reads do not wait for the SUMO step in flight when they come
+        (each such wait cost a frame about one SUMO step): the network answers about the
+        path's junctions and the roads of the actors around, the links and the lanes to
+        watch at the next stop lines, the crossings ahead. Reaches EXPECT_AHEAD_M beyond
+        what the checks below look at, so that the answers are in before they are asked."""
+        tr = getattr(self.sim, "traffic", None)
+        expect = getattr(tr, "expect", None)
+        if expect is None:
+            return
+        lane_p, edge_p = ("sumo", "lane"), ("sumo", "edge")
+        reads = [(("incoming_lanes",), ())]
+        far = s_here + SENSE_RANGE_M + EXPECT_AHEAD_M
+        for lane in path.lanes_between(s_here - 5.0, far):
+            if lane.startswith(":"):
+                reads.append((lane_p + ("getInternalFoes",), (lane,)))
+        lanes = getattr(actors, "lane", None)
+        if lanes is not None:
+            for ln in set(lanes.tolist()):
+                if ln and not ln.startswith(":"):
+                    e = ln.rsplit("_", 1)[0]
+                    reads += [(edge_p + ("getToJunction",), (e,)), (edge_p + ("getFromJunction",), (e,))]
+        front = s_here + self.front
+        horizon = max(60.0, v * v / (2 * COMFORT_DECEL) + 30.0) + EXPECT_AHEAD_M
+        inc = self._incoming if self._incoming is not None else {}
+        for stop in path.stops:
+            if stop.s < front - 0.3:
+                continue
+            if stop.s > front + horizon:
+                break
+            reads.append((lane_p + ("getLinks",), (stop.lane,)))
+            reads.append((lane_p + ("getFoes",), (stop.lane, stop.to_lane)))
+            if stop.via:
+                reads.append((lane_p + ("getInternalFoes",), (stop.via,)))
+                for f in self._internal_foes.get(stop.via, ()):
+                    reads.append((lane_p + ("getLastStepVehicleIDs",), (f,)))
+            for f in self._foes.get((stop.lane, stop.to_lane), ()):
+                reads += [(lane_p + ("getLength",), (f,)), (lane_p + ("getLastStepVehicleIDs",), (f,))]
+                for q in inc.get(f, ()):
+                    reads += [(lane_p + ("getLength",), (q,)), (lane_p + ("getLastStepVehicleIDs",), (q,))]
+        for c in path.crossings:
+            if c.s + c.width / 2.0 < front:
+                continue
+            if c.s - c.width / 2.0 > front + max(40.0, v * v / (2 * COMFORT_DECEL) + 20.0) + EXPECT_AHEAD_M:
+                break
+            reads.append((edge_p + ("getLastStepPersonIDs",), (c.edge,)))
+        try:
+            expect(reads)
+        except Exception as e:      # (a worker that died says so at the next call)
+            log.debug("expect: %s", e)
 
     def _foe_lanes(self, path, s_here) -> set:
         """Junction lanes of other links that cross the path's junction lanes ahead."""

@@ -55,7 +55,7 @@ _STATIC = {
 } | {
     ("sumo", "edge", n) for n in ("getLaneNumber", "getIDList", "getStreetName", "getFromJunction",
                                   "getToJunction")
-} | {
+} | {("incoming_lanes",)} | {
     ("sumo", "junction", n) for n in ("getIncomingEdges", "getOutgoingEdges", "getPosition", "getShape",
                                       "getIDList")
 } | {
@@ -223,6 +223,16 @@ def _serve(conn):
                         value[key] = ("ok", _portable(obj(*key[1])))
                     except BaseException as e:  # noqa: BLE001
                         value[key] = ("err", _portable_error(e))
+            elif op == "batch":                # reads asked ahead (TrafficProcess.expect)
+                value = []
+                for key_path, key_args in path:
+                    try:
+                        obj = t
+                        for name in key_path:
+                            obj = getattr(obj, name)
+                        value.append(("ok", _portable(obj(*key_args))))
+                    except BaseException as e:  # noqa: BLE001
+                        value.append(("err", _portable_error(e)))
             else:
                 obj = t
                 for name in path:
@@ -319,6 +329,7 @@ class TrafficProcess(Component):
         self._kinds: dict = {}
         self._cache: dict = {}
         self._cache_gen = None
+        self._asked: set = set()   # network reads asked ahead (expect), not answered yet
         # reads answered with the step (path, args) -> (status, value), and the reads to ask
         # for: every read the caller made in one of the last PREFETCH_KEEP steps
         self._prefetched: dict = {}
@@ -395,6 +406,12 @@ class TrafficProcess(Component):
             raise value
         if tag == "adopt":
             self._adopted = value
+        elif isinstance(tag, tuple) and tag[0] == "expect":
+            self._static_cache_fresh()
+            for key, (st, v) in zip(tag[1], value):
+                self._asked.discard(key)
+                if st == "ok":
+                    self._cache[key + ((),)] = v
         if status == "step":
             self._prefetched = value
         return status, value
@@ -427,13 +444,38 @@ class TrafficProcess(Component):
             self._recv()   # raises the worker's death as a SimulationError
         self._inflight.append(tag)
 
+    def _static_cache_fresh(self) -> None:
+        """The cache of network answers, emptied when the network changed."""
+        gen = self._state.get("_generation")
+        if gen != self._cache_gen:
+            self._cache.clear()
+            self._asked.clear()
+            self._cache_gen = gen
+
+    def expect(self, reads) -> None:
+        """Reads (path, args) the caller will make soon, asked ahead without waiting, so that
+        the call itself does not wait for the step in flight: network answers (``_STATIC``)
+        not cached yet go to the worker in one batch, answered after the step and cached;
+        other reads are asked for with the next step (as if the caller had made them)."""
+        if self._conn is None:
+            return
+        self._static_cache_fresh()
+        batch = []
+        for path, args in reads:
+            key = (path, tuple(args))
+            if path in _STATIC:
+                if key + ((),) not in self._cache and key not in self._asked:
+                    batch.append(key)
+                    self._asked.add(key)
+            elif _is_read(path):
+                self._prefetch_keys[key] = self._steps
+        if batch:
+            self._post(("batch", tuple(batch), (), {}), tag=("expect", tuple(batch)))
+
     def _call(self, path, args, kwargs):
         static = path in _STATIC
         if static:
-            gen = self._state.get("_generation")
-            if gen != self._cache_gen:
-                self._cache.clear()
-                self._cache_gen = gen
+            self._static_cache_fresh()
             key = (path, args, tuple(sorted(kwargs.items())))
             try:
                 return self._cache[key]

@@ -134,6 +134,42 @@ def test_two_workers_at_once_and_reads_never_stale(net, routes):
     assert not a.running
 
 
+def test_reads_asked_ahead_do_not_wait_for_the_step(net, routes):
+    """``expect``: network reads come back in one batch and are cached (the later call sends
+    nothing); a state read is answered with the next step, so that a read under
+    ``lagged_reads`` a step later takes that answer instead of waiting for the step in flight;
+    the answers are the same as asked directly."""
+    t = TrafficProcess(net, routes, seed=1)
+    t.setup()
+    try:
+        s = t.sumo
+        edges = [e for e in s.edge.getIDList() if not e.startswith(":")][:21]
+        lane = _start_lane(s)
+        s.edge.getToJunction(edges.pop())     # (the proxy learns what the name is: once)
+        s.lane.getLastStepVehicleIDs(lane)
+        for _ in range(50):
+            t.step()
+        static = [(("sumo", "edge", "getToJunction"), (e,)) for e in edges]
+        t.expect(static + [(("sumo", "lane", "getLastStepVehicleIDs"), (lane,))])
+        t.step()                        # the state read goes with this step
+        t.sync()                        # (the batch and the step answered)
+        calls = t.calls
+        got = [s.edge.getToJunction(e) for e in edges]
+        assert t.calls == calls, "a network read asked ahead was sent again"
+        t.step()                        # in flight: the read is answered from the last step
+        with t.lagged_reads():
+            ids = s.lane.getLastStepVehicleIDs(lane)
+            assert t.calls == calls + 1 and t._inflight, "the read waited for the step in flight"
+        t.sync()
+        with SumoTraffic(net, routes, seed=1) as ref:
+            for _ in range(51):
+                ref.step()
+            assert got == [ref.sumo.edge.getToJunction(e) for e in edges]
+            assert list(ids) == list(ref.sumo.lane.getLastStepVehicleIDs(lane))
+    finally:
+        t.teardown()
+
+
 def test_worker_errors_are_one_line(net, tmp_path):
     garbage = tmp_path / "garbage.net.xml"
     garbage.write_text("<net><garbage")
