@@ -182,6 +182,13 @@ def _on_lane(t, args) -> bool:
         return False
 
 
+def _attr(obj, path):
+    """obj.a.b.c for path ("a", "b", "c")."""
+    for name in path:
+        obj = getattr(obj, name)
+    return obj
+
+
 def _serve(conn):
     """Worker main loop: one SumoTraffic, requests answered in order."""
     import faulthandler
@@ -217,26 +224,18 @@ def _serve(conn):
                     if key[0] in _NEEDS_LANE and not _on_lane(t, key[1]):
                         continue   # libsumo can crash on these for a vehicle off the network
                     try:
-                        obj = t
-                        for name in key[0]:
-                            obj = getattr(obj, name)
-                        value[key] = ("ok", _portable(obj(*key[1])))
+                        value[key] = ("ok", _portable(_attr(t, key[0])(*key[1])))
                     except BaseException as e:  # noqa: BLE001
                         value[key] = ("err", _portable_error(e))
             elif op == "batch":                # reads asked ahead (TrafficProcess.expect)
                 value = []
                 for key_path, key_args in path:
                     try:
-                        obj = t
-                        for name in key_path:
-                            obj = getattr(obj, name)
-                        value.append(("ok", _portable(obj(*key_args))))
+                        value.append(("ok", _portable(_attr(t, key_path)(*key_args))))
                     except BaseException as e:  # noqa: BLE001
                         value.append(("err", _portable_error(e)))
             else:
-                obj = t
-                for name in path:
-                    obj = getattr(obj, name)
+                obj = _attr(t, path)
                 if op == "call":
                     value = _portable(obj(*a, **kw))
                 elif inspect.ismodule(obj) or inspect.isclass(obj):
@@ -420,9 +419,7 @@ class TrafficProcess(Component):
         """Wait for every request in flight (a step, a pose) to be answered; raise the first
         error among them. Returns the last answer (status, value)."""
         out = None
-        if self._pending_pose is not None:
-            pose, self._pending_pose = self._pending_pose, None
-            self._post(("call", ("set_ego_pose",)) + pose)
+        self._flush_pose()
         if self._inflight:
             self.waits += 1
         while self._inflight:
@@ -431,9 +428,8 @@ class TrafficProcess(Component):
 
     def _post(self, msg, tag: str | None = None) -> None:
         """Send a request without waiting for its answer."""
-        if self._pending_pose is not None and msg[0] != "step":
-            pose, self._pending_pose = self._pending_pose, None
-            self._post(("call", ("set_ego_pose",)) + pose)
+        if msg[0] != "step":
+            self._flush_pose()
         if self._conn is None:
             raise SimulationError("SUMO is not running: call setup() first")
         self.calls += 1
@@ -443,6 +439,12 @@ class TrafficProcess(Component):
             self._inflight.clear()
             self._recv()   # raises the worker's death as a SimulationError
         self._inflight.append(tag)
+
+    def _flush_pose(self) -> None:
+        """Send a pose that waits for the next step now (another request comes first)."""
+        if self._pending_pose is not None:
+            pose, self._pending_pose = self._pending_pose, None
+            self._post(("call", ("set_ego_pose",)) + pose)
 
     def _static_cache_fresh(self) -> None:
         """The cache of network answers, emptied when the network changed."""
@@ -707,9 +709,7 @@ class TrafficProcess(Component):
         self._last_pose = (float(x), float(y))
         # (SUMO moves the ego in its next step: reads until then see the state before, as
         # in-process; so the prefetched answers stay valid)
-        if self._pending_pose is not None:
-            pose, self._pending_pose = self._pending_pose, None
-            self._post(("call", ("set_ego_pose",)) + pose)
+        self._flush_pose()
         self._pending_pose = ((x, y) + args, kwargs)
 
     def actors_near(self, x: float, y: float, radius: float):

@@ -726,12 +726,19 @@ class SumoTraffic(Component):
         return [tc.VAR_POSITION, tc.VAR_ANGLE, tc.VAR_SPEED, tc.VAR_VEHICLE, tc.VAR_TYPE,
                 tc.VAR_SLOPE]
 
-    def _vtype_info(self, type_id: str) -> tuple[str, float, float, float]:
-        """(vehicle class, length, width, height) of a vehicle type, cached."""
+    def _vtype_info(self, type_id: str, vehicle: str) -> tuple[str, float, float, float]:
+        """(vehicle class, length, width, height) of a vehicle type, cached; the vehicle's own
+        when SUMO's type lookup does not know its type."""
         info = self._vclass_cache.get(type_id)
         if info is None:
-            vt = self._sim.vehicletype
-            info = (vt.getVehicleClass(type_id),) + self._type_dims(type_id)
+            try:
+                vt = self._sim.vehicletype
+                info = (vt.getVehicleClass(type_id), vt.getLength(type_id), vt.getWidth(type_id),
+                        vt.getHeight(type_id))
+            except self._exc:
+                ve = self._sim.vehicle
+                return (ve.getVehicleClass(vehicle), ve.getLength(vehicle), ve.getWidth(vehicle),
+                        ve.getHeight(vehicle))
             self._vclass_cache[type_id] = info
         return info
 
@@ -852,7 +859,7 @@ class SumoTraffic(Component):
                 lanes.append("")
                 length, width, height = self._type_dims(v[TYPE], aid)
             else:
-                vclass, length, width, height = self._vtype_info(v[TYPE])
+                vclass, length, width, height = self._vtype_info(v[TYPE], aid)
                 kind.append(vclass)
                 lanes.append(v.get(LANE, ""))
             ids.append(aid)

@@ -416,6 +416,23 @@ def test_actors_near_radius_and_centres(dense, traffic):
         assert snap.length[i] == pytest.approx(length)
         assert snap.width[i] == pytest.approx(s.vehicle.getWidth(aid))
         assert snap.speed[i] == pytest.approx(s.vehicle.getSpeed(aid))
+    # sizes and classes are read once per vehicle type: a vehicle resized on its own (SUMO
+    # gives it a type of its own) shows its own size, the others of its old type keep theirs
+    big = min(veh, key=lambda a: math.hypot(snap.x[snap.index(a)] - cx, snap.y[snap.index(a)] - cy))
+    same_type = [a for a in veh if a != big and s.vehicle.getTypeID(a) == s.vehicle.getTypeID(big)]
+    assert same_type
+    s.vehicle.setLength(big, 7.5)
+    s.vehicle.setWidth(big, 2.4)
+    t.set_ego_pose(cx, cy, sumo_angle_to_yaw(angle), 0.0)
+    t.step()
+    snap2 = t.actors_near(cx, cy, radius)
+    i = snap2.index(big)                     # (the nearest vehicle: still within the radius)
+    assert (snap2.length[i], snap2.width[i]) == pytest.approx((7.5, 2.4))
+    assert snap2.kind[i] == s.vehicle.getVehicleClass(big)
+    others = [a for a in same_type if a in snap2.ids]
+    assert others
+    for aid in others:
+        assert snap2.length[snap2.index(aid)] == pytest.approx(s.vehicle.getLength(aid)) != 7.5
     # a smaller radius gives a subset; a query without ego nearby works through the probe
     small = t.actors_near(cx, cy, 20.0)
     assert set(small.ids) <= set(snap.ids)
