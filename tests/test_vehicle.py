@@ -29,8 +29,8 @@ HZ = int(os.environ.get("COSIM_VEHICLE_TEST_HZ") or V.RECOMMENDED_PHYSICS_HZ)
 DT = 1.0 / HZ
 GRADE = 0.10  # 10 % incline
 KMH100 = 100.0 / 3.6
-# the triangle-mesh / heightfield tests run at the test rate and at 100 Hz
-MESH_RATES = sorted({HZ, 100})
+# the triangle-mesh / heightfield tests run at the test rate and at 50 and 100 Hz
+MESH_RATES = sorted({HZ, 50, 100})
 
 
 # --- worlds ------------------------------------------------------------------------------------
