@@ -122,13 +122,125 @@ def _first_crossing(path: np.ndarray, shape: np.ndarray):
     return ia, float(t[ia, ib])
 
 
+#: the most a car at full lock would leave a turn's centreline (m) for the turn to be driven;
+#: beyond it the car's body leaves a 3.2 m lane by more than half a metre
+TURN_DEVIATION_MAX_M = 0.9
+_TURN_CACHE: dict = {}
+
+
+def car_turn_radius() -> float:
+    """Radius (m) of the circle the car's rear axle drives at full lock."""
+    from .vehicle import min_turn_radius
+
+    return float(min_turn_radius())
+
+
+def turn_deviation(P: np.ndarray, radius: float, lookahead: float = 5.0, step: float = 0.5) -> float:
+    """How far (m) the middle of a car's footprint leaves the polyline ``P`` when it follows it
+    by pure pursuit (look-ahead ``lookahead``, the autopilot's at low speed) turning no
+    tighter than its rear axle's ``radius``: a kinematic run along the polyline, ``step``
+    metres a step. 0 where the polyline never turns tighter than the car can (checked first,
+    without the run). For the ego car, a 90-degree junction turn of 2.6 m (SUMO's tightest)
+    gives about 0.6 m; a Monaco hairpin drawn at 3 m, 1.5 m."""
+    from .vehicle import WHEELBASE
+
+    P = np.asarray(P, dtype=float)[:, :2]
+    P = P[_forward_points(P)]            # (as the path is built: no doubling back at tiny edges)
+    if len(P) < 3:
+        return 0.0
+    Q = _resample(P, step)
+    n = len(Q)
+    if n < 3:
+        return 0.0
+    h = np.unwrap(np.arctan2(np.diff(Q[:, 1]), np.diff(Q[:, 0])))
+    w = max(1, int(round(2.0 / step)))   # heading change over +-2 m
+    if len(h) <= 2 * w or np.max(np.abs(h[2 * w:] - h[:-2 * w])) / (2 * w * step) <= 1.0 / radius:
+        return 0.0
+    k_max = 1.0 / radius
+    qx, qy = Q[:, 0].tolist(), Q[:, 1].tolist()      # (plain floats: a step is a few numbers)
+    x, y, yaw = qx[0], qy[0], float(h[0])
+    i = 0
+    ahead = int(round(lookahead / step))
+    half_wb = WHEELBASE / 2.0
+    worst = 0.0
+    cos, sin, atan2, hypot = math.cos, math.sin, math.atan2, math.hypot
+    for _ in range(n + 20):
+        best = None
+        for j in range(max(0, i - 2), min(n, i + 6)):
+            d2 = (qx[j] - x) ** 2 + (qy[j] - y) ** 2
+            if best is None or d2 < best:
+                best, i_new = d2, j
+        i = i_new
+        if i + ahead >= n - 1:
+            break
+        tx, ty = qx[i + ahead] - x, qy[i + ahead] - y
+        k = 2.0 * sin(atan2(ty, tx) - yaw) / max(hypot(tx, ty), 1e-6)
+        yaw += max(-k_max, min(k_max, k)) * step
+        x += step * cos(yaw)
+        y += step * sin(yaw)
+        cx, cy = x + half_wb * cos(yaw), y + half_wb * sin(yaw)
+        near = min((qx[j] - cx) ** 2 + (qy[j] - cy) ** 2 for j in range(max(0, i - 2), min(n, i + 8)))
+        worst = max(worst, near)
+    return math.sqrt(worst)
+
+
+def _link_deviation(sim, lane: str, link, lead_m: float = 10.0) -> float:
+    """:func:`turn_deviation` of a link: the last ``lead_m`` metres of ``lane``, the link's
+    junction lane and the first ``lead_m`` metres of its target (cached by the shapes' ends:
+    another network's lane of the same id is measured again)."""
+    a = np.array(sim.lane.getShape(lane), dtype=float)[:, :2]
+    b = np.array(sim.lane.getShape(link[0]), dtype=float)[:, :2]
+    v = np.array(sim.lane.getShape(link[4]), dtype=float)[:, :2] if link[4] else np.zeros((0, 2))
+    key = (lane, link[0], link[4], tuple(a[-1]), tuple(b[0]), len(v), tuple(v[len(v) // 2]) if len(v) else ())
+    out = _TURN_CACHE.get(key)
+    if out is None:
+        out = turn_deviation(np.vstack([_tail(a, lead_m), v, _tail(b[::-1], lead_m)[::-1]]), car_turn_radius())
+        if len(_TURN_CACHE) > 100_000:
+            _TURN_CACHE.clear()
+        _TURN_CACHE[key] = out
+    return out
+
+
+def _tail(P: np.ndarray, length: float) -> np.ndarray:
+    """The last ``length`` metres of a polyline."""
+    if len(P) < 2:
+        return P
+    d = np.hypot(*np.diff(P, axis=0).T)
+    back = np.concatenate([[0.0], np.cumsum(d[::-1])])      # distance from the end, per point (reversed)
+    k = int(np.searchsorted(back, length))
+    return P[max(0, len(P) - 1 - k):]
+
+
+def _unturnable(sim, lane: str, link) -> bool:
+    """A link the car cannot drive: a turnaround, or a turn tighter than its full lock by
+    more than :data:`TURN_DEVIATION_MAX_M`."""
+    if link[6] == "t":
+        return True
+    try:
+        return _link_deviation(sim, lane, link) > TURN_DEVIATION_MAX_M
+    except Exception:
+        return False
+
+
+def is_tunnel(sim, edge: str) -> bool:
+    """Is ``edge`` in a tunnel (the OSM tag, kept by netconvert as the edge's parameter)? The
+    world has no tunnels: their roads are not meshed."""
+    try:
+        return sim.edge.getParameter(edge, "tunnel") not in ("", "no")
+    except Exception:
+        return False
+
+
 def _turnaround(sim, edge: str, nxt: str) -> bool:
-    """Does the route's step edge -> nxt use a turnaround ('t') link (and no other)?"""
+    """Does the route's step edge -> nxt only have links the car cannot drive (turnarounds,
+    turns far tighter than its full lock: :func:`_unturnable`), or enter a tunnel?"""
+    if is_tunnel(sim, nxt) and not is_tunnel(sim, edge):
+        return True
     found = other = False
     for ln in _drivable_lanes(sim, edge):
         for link in sim.lane.getLinks(ln):
             if link[0].rsplit("_", 1)[0] == nxt:
-                if link[6] == "t":
+                if _unturnable(sim, ln, link):
                     found = True
                 else:
                     other = True
@@ -137,7 +249,9 @@ def _turnaround(sim, edge: str, nxt: str) -> bool:
 
 def route_without_turnarounds(sim, src: str, dst: str, max_edges: int = 20000) -> list[str] | None:
     """Shortest route by road from edge ``src`` to edge ``dst`` (both included) that uses no
-    turnaround link (Dijkstra over lane links, expanded lazily), or None."""
+    link the car cannot drive (a turnaround, a turn far tighter than its full lock:
+    :func:`_unturnable`) and no tunnel (:func:`is_tunnel`; Dijkstra over lane links, expanded
+    lazily), or None."""
     import heapq
 
     succ: dict = {}
@@ -148,10 +262,10 @@ def route_without_turnarounds(sim, src: str, dst: str, max_edges: int = 20000) -
             best = {}
             for ln in _drivable_lanes(sim, e):
                 for link in sim.lane.getLinks(ln):
-                    if link[6] == "t" or not _lane_allows(sim, link[0]):
+                    if not _lane_allows(sim, link[0]):
                         continue
                     ne = link[0].rsplit("_", 1)[0]
-                    if ne not in best:
+                    if ne not in best and not _unturnable(sim, ln, link) and (ne == dst or not is_tunnel(sim, ne)):
                         best[ne] = float(sim.lane.getLength(link[0])) + float(link[7] or 0.0)
             out = succ[e] = list(best.items())
         return out
@@ -186,25 +300,71 @@ def route_without_turnarounds(sim, src: str, dst: str, max_edges: int = 20000) -
 
 
 def without_turnarounds(sim, edges: list[str]) -> tuple[list[str], list]:
-    """The route with every turnaround (a U-turn inside a junction, far tighter than the car's
-    4.6 m turning radius) replaced by the shortest detour without one (around a block).
+    """The route with every step the car cannot turn (a U-turn inside a junction, far tighter
+    than the car's 4.6 m turning radius; a turn a car at full lock would run wide of by more
+    than :data:`TURN_DEVIATION_MAX_M`, such as a hairpin drawn too tight; a way into a tunnel,
+    which the world does not have) replaced by the shortest detour without one (around a
+    block), where there is one.
     Returns (edges, detours made as (from edge, to edge, edges added))."""
     out = [edges[0]] if edges else []
     detours = []
-    for nxt in edges[1:]:
-        cur = out[-1]
+    i = 1
+    while i < len(edges):
+        cur, nxt = out[-1], edges[i]
         try:
             uturn = _turnaround(sim, cur, nxt)
         except Exception:
             uturn = False
         if uturn:
-            alt = route_without_turnarounds(sim, cur, nxt)
-            if alt and len(alt) > 2:
+            # (into a tunnel: around the whole tunnel, to the first edge after it)
+            j = i
+            while j < len(edges) - 1 and is_tunnel(sim, edges[j]):
+                j += 1
+            found = _detour(sim, out, edges, i, j, tunnel=j > i or is_tunnel(sim, nxt))
+            if found is not None:
+                back, jj, alt = found
+                start = out[len(out) - 1 - back]
+                del out[len(out) - back:]
                 out.extend(alt[1:])
-                detours.append((cur, nxt, len(alt) - 2))
+                detours.append((start, edges[jj], len(alt) - 2))
+                i = jj + 1
                 continue
         out.append(nxt)
+        i += 1
     return out, detours
+
+
+def undrivable_steps(sim, edges: list[str]) -> list:
+    """The steps (edge, next edge) of a route the car cannot drive (see :func:`_turnaround`)."""
+    out = []
+    for a, b in zip(edges, edges[1:]):
+        try:
+            if _turnaround(sim, a, b):
+                out.append((a, b))
+        except Exception:
+            pass
+    return out
+
+
+def _detour(sim, out: list, edges: list, i: int, j: int, tunnel: bool, back_max: int = 4, ahead_max: int = 4,
+            max_search: int = 400):
+    """A way around the step ``out[-1] -> edges[i]`` (or the tunnel ``edges[i:j]``): from the
+    route's last edge, else from up to ``back_max`` edges before it (a one-way street may
+    have no other exit), to ``edges[j]``, else up to ``ahead_max`` edges further on. Returns
+    (edges of ``out`` given up, index of the edge rejoined, the detour's edges) or None.
+    Each search expands at most ``max_search`` edges (a block, not the city)."""
+    for back in range(min(back_max, len(out) - 1) + 1):
+        src = out[len(out) - 1 - back]
+        for jj in range(j, min(len(edges), j + ahead_max + 1)):
+            if jj == j and not tunnel and back == 0:
+                alt = route_without_turnarounds(sim, src, edges[jj], max_edges=max_search)
+                if alt and len(alt) > 2:
+                    return back, jj, alt
+                continue
+            alt = route_without_turnarounds(sim, src, edges[jj], max_edges=max_search)
+            if alt and len(alt) >= 2 and not (back == 0 and jj == i and len(alt) == 2):
+                return back, jj, alt
+    return None
 
 
 @dataclass

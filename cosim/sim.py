@@ -366,6 +366,7 @@ class Simulation:
             if self._swap_next is None or not self._swap_start(pose):
                 self.traffic.set_ego_pose(*pose)
                 self.traffic.step()
+        snap = snap.above_ground(self.world.tunnels)
         with self.traffic.lagged_reads() if pipelined else contextlib.nullcontext():
             self.t += cfg.step_length_s
             self.last_snapshot = snap

@@ -54,7 +54,7 @@ _STATIC = {
                                   "getFoes")
 } | {
     ("sumo", "edge", n) for n in ("getLaneNumber", "getIDList", "getStreetName", "getFromJunction",
-                                  "getToJunction")
+                                  "getToJunction", "getParameter")
 } | {("incoming_lanes",)} | {
     ("sumo", "junction", n) for n in ("getIncomingEdges", "getOutgoingEdges", "getPosition", "getShape",
                                       "getIDList")

@@ -156,11 +156,23 @@ class ActorsSnapshot:
 
     def within(self, x: float, y: float, radius: float) -> "ActorsSnapshot":
         """The actors whose centre is within ``radius`` of (x, y)."""
-        keep = np.hypot(self.x - x, self.y - y) <= radius
+        return self.subset(np.hypot(self.x - x, self.y - y) <= radius)
+
+    def subset(self, keep: np.ndarray) -> "ActorsSnapshot":
+        """The actors selected by a boolean mask (or index array)."""
         return ActorsSnapshot(self.time, self.ids[keep], self.kind[keep], self.x[keep], self.y[keep],
                               self.yaw[keep], self.length[keep], self.width[keep], self.height[keep],
                               self.speed[keep], self.slope[keep],
                               None if self.lane is None else self.lane[keep])
+
+    def above_ground(self, tunnels) -> "ActorsSnapshot":
+        """Without the vehicles on a lane of a tunnel edge (``tunnels``: edge ids): they
+        drive under the ground, where the world has nothing (persons have no lane here)."""
+        if not tunnels or self.lane is None or not len(self.ids):
+            return self
+        keep = np.fromiter((not ln or ln[:ln.rfind("_")] not in tunnels for ln in self.lane.tolist()),
+                           dtype=bool, count=len(self.ids))
+        return self if keep.all() else self.subset(keep)
 
     def index(self, actor_id: str) -> int:
         hits = np.nonzero(self.ids == actor_id)[0]
@@ -914,6 +926,26 @@ class SumoTraffic(Component):
         except self._exc as e:
             raise SimulationError(f"no road for cars near ({x:.0f}, {y:.0f}) m: {e}") from None
         lane = f"{edge}_{idx}"
+        from .driving import _lane_allows, is_tunnel
+
+        if is_tunnel(s, edge):
+            # the world has no tunnels: the nearest lane on the surface instead
+            best = None
+            for ln in s.lane.getIDList():
+                if ln.startswith(":") or is_tunnel(s, ln.rsplit("_", 1)[0]) or not _lane_allows(s, ln, vclass):
+                    continue
+                P = np.asarray(s.lane.getShape(ln), dtype=float)
+                if len(P) < 2:
+                    continue
+                v = np.diff(P, axis=0)
+                L2 = np.maximum((v * v).sum(axis=1), 1e-18)
+                t = np.clip(((np.array([x, y]) - P[:-1]) * v).sum(axis=1) / L2, 0.0, 1.0)
+                d = float(np.min(np.hypot(*(P[:-1] + t[:, None] * v - (x, y)).T)))
+                if best is None or d < best[0]:
+                    best = (d, ln)
+            if best is not None:
+                lane = best[1]
+                pos = self.lane_pos(lane, x, y)
         guard = 0
         while lane.startswith(":") and guard < 5:
             links = s.lane.getLinks(lane)
@@ -941,22 +973,37 @@ class SumoTraffic(Component):
 
     def random_route(self, edge: str, rng_state, min_len: float = 800.0):
         """A route from ``edge`` of at least ``min_len`` m to an edge drawn at random (else the
-        longest of 40 tries): (edges, the random generator's state after the draws)."""
+        longest of 40 tries), through no tunnel and no turn the car cannot make where it can
+        (else the first long one found): (edges, the random generator's state after the
+        draws)."""
+        from .driving import is_tunnel, undrivable_steps, without_turnarounds
+
         s = self._require()
         rng = random.Random()
         rng.setstate(rng_state)
         edges = [e for e in s.edge.getIDList() if not e.startswith(":")]
-        best = [edge]
+        best, fallback = [edge], None
         for _ in range(40):
             to = rng.choice(edges)
             try:
                 r = s.simulation.findRoute(edge, to, vType="DEFAULT_VEHTYPE")
             except self._exc:
                 continue
-            if r.edges and r.length >= min_len:
+            if not r.edges:
+                continue
+            if r.length >= min_len:
+                # through a tunnel (the world has none) or a turn the car cannot make (a hairpin
+                # drawn tighter than its full lock) with no way around: another destination,
+                # unless every way from here has one (a one-way street down a hairpin)
+                if any(is_tunnel(s, e) for e in r.edges) or \
+                        undrivable_steps(s, without_turnarounds(s, list(r.edges))[0]):
+                    fallback = fallback or list(r.edges)
+                    continue
                 return list(r.edges), rng.getstate()
-            if r.edges and len(r.edges) > len(best):
+            if len(r.edges) > len(best):
                 best = list(r.edges)
+        if fallback is not None:
+            return fallback, rng.getstate()
         if len(best) < 2:
             raise SimulationError(f"no route for the ego from edge {edge}")
         return best, rng.getstate()

@@ -35,6 +35,8 @@ class World:
         self.chunks = {(c["i"], c["j"]): dict(c, _base=self.path, _window=tuple(m.get("window", (0, 0))))
                        for c in m["chunks"]}
         self.net_file = self.path / m["net_file"]
+        #: SUMO edges in tunnels: not meshed (worlds built before netgen 0.1.9 list none)
+        self.tunnels = frozenset(m.get("tunnels", ()))
         self.windows = [self.path]
         self._grids: dict = {}
         self._scenery: dict = {}
@@ -61,6 +63,7 @@ class World:
                 self._scenery.pop(ij, None)
                 changed.append(ij)
         self.net_file = other.net_file
+        self.tunnels = self.tunnels | other.tunnels
         self.windows.append(other.path)
         self.meta["extent_m"] = list(self._union_extent())
         self.version += 1

@@ -81,6 +81,8 @@ class Edge:
     orig_ids: tuple                # OSM way ids
     lanes: list = field(default_factory=list)
     raw_shape: np.ndarray | None = None     # from-node .. to-node geometry (unclipped)
+    tunnel: bool = False           # OSM tunnel=* (but "no"): under the ground, not on it
+
 
     @property
     def drivable(self) -> bool:
@@ -247,6 +249,9 @@ def _read(f, internal: bool, internal_junctions: bool | None = None) -> RoadNet:
                         if prm.get("key") == "origId":
                             e.orig_ids = tuple(prm.get("value", "").split())
                             break
+            for prm in _children(el, "param"):
+                if prm.get("key") == "tunnel":
+                    e.tunnel = prm.get("value", "no") not in ("no", "")
             edges[e.id] = e
         elif tag == "junction":
             get = el.get

@@ -41,7 +41,7 @@ def sumo_env() -> dict:
     return env
 
 
-NETCONVERT_VERSION_TAG = "netconvert-opts-v3"
+NETCONVERT_VERSION_TAG = "netconvert-opts-v4"
 
 
 def netconvert_args(osm_xml: Path, out_net: Path, proj: str, geo_boundary=None, tls_join: bool = False) -> list[str]:
@@ -76,6 +76,7 @@ def netconvert_args(osm_xml: Path, out_net: Path, proj: str, geo_boundary=None, 
         "--output.street-names", "true", "--output.original-names", "true",
         "--junctions.corner-detail", "5", "--rectangular-lane-cut", "false",
         "--osm.elevation", "false",
+        "--osm.all-attributes", "true", "--osm.extra-attributes", "tunnel,bridge,layer",
         "--no-warnings", "false", "--aggregate-warnings", "5",
         "-o", str(out_net),
     ]

@@ -564,3 +564,89 @@ def test_a_car_coming_to_the_same_junction_is_left_to_its_right_of_way(helsinki)
         assert crossing_car(0.5, f"{elsewhere}_0") is None      # nearer than 5 m/s stops in (2.1 m)
     finally:
         sim.teardown()
+
+
+def _arc_polyline(r: float, deg: float, lead: float = 10.0) -> np.ndarray:
+    th = np.radians(np.linspace(0.0, deg, 60))
+    arc = np.column_stack([r * np.sin(th), r * (1.0 - np.cos(th))])
+    h = np.radians(deg)
+    pre = np.column_stack([np.linspace(-lead, 0.0, 10), np.zeros(10)])
+    post = arc[-1] + np.outer(np.linspace(0.0, lead, 10), [np.cos(h), np.sin(h)])
+    return np.vstack([pre, arc[1:], post[1:]])
+
+
+def test_turn_deviation_tells_the_turns_the_car_can_make():
+    """How far the car at full lock runs wide of a turn: nothing on a wide curve, about
+    0.6 m on SUMO's tightest 90-degree junction turns (driven: within the lane), over a
+    metre and a half on a hairpin drawn at 2.9 m (Monaco's 1699777425: the car ran into a wall)."""
+    from cosim.driving import TURN_DEVIATION_MAX_M, car_turn_radius, turn_deviation
+
+    R = car_turn_radius()
+    assert turn_deviation(_arc_polyline(10.0, 180.0), R) == 0.0
+    assert turn_deviation(_arc_polyline(6.0, 90.0), R) == 0.0
+    right = turn_deviation(_arc_polyline(2.6, 90.0), R)
+    assert 0.3 < right < TURN_DEVIATION_MAX_M
+    hairpin = turn_deviation(_arc_polyline(2.9, 155.0), R)
+    assert hairpin > 1.5
+    assert turn_deviation(_arc_polyline(3.5, 155.0), R) < hairpin   # a wider hairpin: less
+
+
+def test_routes_go_around_tunnels_and_turns_the_car_cannot_make(monaco):
+    """Monaco: its tunnels are not in the world, and Avenue de la Costa's hairpin at junction
+    1699777425 is drawn tighter than the car can turn. The step through the hairpin is found
+    undrivable, random routes from the start avoid it and every tunnel, and a route into a
+    tunnel is replaced by a way around it."""
+    from cosim.driving import (TURN_DEVIATION_MAX_M, _link_deviation, is_tunnel, undrivable_steps,
+                               without_turnarounds)
+
+    sim = start_sim(monaco)
+    try:
+        s = sim.traffic.sumo
+        tunnels = sim.world.tunnels
+        assert len(tunnels) > 20 and all(is_tunnel(s, e) for e in list(tunnels)[:20])
+        link = [lk for lk in s.lane.getLinks("176477340#2_1") if lk[0] == "200502322#0_1"][0]
+        assert _link_deviation(s, "176477340#2_1", link) > TURN_DEVIATION_MAX_M
+        assert undrivable_steps(s, ["176477340#2", "200502322#0"]) == [("176477340#2", "200502322#0")]
+        import random
+        for seed in range(6):
+            route, _ = sim.traffic.random_route("4229537#0", random.Random(seed).getstate(), min_len=400.0)
+            assert not [e for e in route if e in tunnels]
+            assert not undrivable_steps(s, without_turnarounds(s, route)[0])
+        # up the one-way street to the hairpin, every way leads through it: a route all the same
+        route, _ = sim.traffic.random_route("176477340#0", random.Random(0).getstate(), min_len=400.0)
+        assert undrivable_steps(s, route) == [("176477340#2", "200502322#0")]
+        # SUMO's routes through a tunnel: still connected, same ends; without a tunnel where
+        # the car's own router finds a way around (in Monaco the tunnels are mostly the only way)
+        from cosim.driving import _drivable_lanes, route_without_turnarounds
+
+        def nexts(e):
+            return {lk[0].rsplit("_", 1)[0] for k in range(s.edge.getLaneNumber(e)) for lk in s.lane.getLinks(f"{e}_{k}")}
+
+        surface = sorted(e for e in s.edge.getIDList() if not e.startswith(":") and e not in tunnels
+                         and _drivable_lanes(s, e))
+        rng = random.Random(3)
+        tried = 0
+        for _ in range(400):
+            try:
+                route = list(s.simulation.findRoute(rng.choice(surface), rng.choice(surface), vType="DEFAULT_VEHTYPE").edges)
+            except Exception:       # (SUMO's error when there is no route)
+                continue
+            if not any(e in tunnels for e in route):
+                continue
+            tried += 1
+            fixed, detours = without_turnarounds(s, route)
+            assert fixed[0] == route[0] and fixed[-1] == route[-1]
+            assert all(b in nexts(a) for a, b in zip(fixed, fixed[1:]))      # connected
+            if any(e in tunnels for e in fixed):
+                assert route_without_turnarounds(s, route[0], route[-1]) is None or \
+                    any(e in tunnels for e in route_without_turnarounds(s, route[0], route[-1]))
+            if tried >= 8:
+                break
+        assert tried >= 5
+        # a start on a tunnel's lane snaps to the nearest lane on the surface
+        tl = next(f"{e}_0" for e in sorted(tunnels) if _drivable_lanes(s, e) and s.lane.getLength(f"{e}_0") > 30)
+        P = np.array(s.lane.getShape(tl))
+        lane, _, px, py, _, dist = sim.traffic.snap_lane(*P[len(P) // 2])
+        assert lane.rsplit("_", 1)[0] not in tunnels and dist > 0.0
+    finally:
+        sim.teardown()
