@@ -437,22 +437,23 @@ def _junction_gaps(net) -> tuple[list, list]:
 def _interior_points(shapes, step: float) -> np.ndarray:
     """Points of a square lattice (``step``, offset by half a step from each shape's bounding
     box) inside polygon shapes, all shapes together (k, 2)."""
-    out = []
-    for sh in shapes:
-        r = _open_ring(np.asarray(sh)[:, :2])
-        if r is None:
-            continue
-        lo, hi = r.min(axis=0), r.max(axis=0)
-        xs = np.arange(lo[0] + 0.5 * step, hi[0], step)
-        ys = np.arange(lo[1] + 0.5 * step, hi[1], step)
-        if not len(xs) or not len(ys):
-            continue
-        X, Y = np.meshgrid(xs, ys)
-        poly = shapely.Polygon(r)
-        inside = shapely.contains_xy(poly, X.ravel(), Y.ravel())
-        if inside.any():
-            out.append(np.column_stack([X.ravel()[inside], Y.ravel()[inside]]))
-    return np.vstack(out) if out else np.zeros((0, 2))
+    rings = [r for r in (_open_ring(np.asarray(sh)[:, :2]) for sh in shapes) if r is not None]
+    if not rings:
+        return np.zeros((0, 2))
+    R, g = _concat(rings)
+    starts = np.r_[0, np.cumsum(np.bincount(g))[:-1]]
+    lo = np.column_stack([np.minimum.reduceat(R[:, 0], starts), np.minimum.reduceat(R[:, 1], starts)])
+    hi = np.column_stack([np.maximum.reduceat(R[:, 0], starts), np.maximum.reduceat(R[:, 1], starts)])
+    cnt = np.maximum(np.ceil((hi - lo) / step - 0.5), 0).astype(np.int64)     # lattice columns, rows
+    n = cnt[:, 0] * cnt[:, 1]
+    owner = np.repeat(np.arange(len(rings)), n)
+    local = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+    X = lo[owner, 0] + (local % np.maximum(cnt[owner, 0], 1) + 0.5) * step
+    Y = lo[owner, 1] + (local // np.maximum(cnt[owner, 0], 1) + 0.5) * step
+    polys = shapely.polygons(shapely.linearrings(R, indices=g))
+    shapely.prepare(polys)
+    inside = shapely.contains_xy(polys[owner], X, Y)
+    return np.column_stack([X[inside], Y[inside]])
 
 
 def _dense_triangulated(shapes, step: float):
