@@ -225,8 +225,10 @@ def _unturnable(sim, lane: str, link) -> bool:
 def is_tunnel(sim, edge: str) -> bool:
     """Is ``edge`` in a tunnel (the OSM tag, kept by netconvert as the edge's parameter)? The
     world has no tunnels: their roads are not meshed."""
+    from netgen.roadnet import SURFACE_TUNNEL_VALUES
+
     try:
-        return sim.edge.getParameter(edge, "tunnel") not in ("", "no")
+        return sim.edge.getParameter(edge, "tunnel") not in SURFACE_TUNNEL_VALUES
     except Exception:
         return False
 

@@ -41,6 +41,9 @@ except ImportError:  # pragma: no cover - lxml is a dependency; ElementTree is t
     def _children(el, tag):
         return el.iterfind(tag)
 
+#: OSM ``tunnel=*`` values of roads that stay on the ground (through a building, under an
+#: avalanche roof): meshed like any road
+SURFACE_TUNNEL_VALUES = frozenset({"no", "", "building_passage", "avalanche_protector"})
 CAR_CLASSES = {"passenger", "private", "taxi", "bus", "truck", "delivery", "emergency", "evehicle"}
 
 
@@ -81,7 +84,7 @@ class Edge:
     orig_ids: tuple                # OSM way ids
     lanes: list = field(default_factory=list)
     raw_shape: np.ndarray | None = None     # from-node .. to-node geometry (unclipped)
-    tunnel: bool = False           # OSM tunnel=* (but "no"): under the ground, not on it
+    tunnel: bool = False           # OSM tunnel=* (yes, culvert, ...): under the ground, not on it
 
 
     @property
@@ -251,7 +254,7 @@ def _read(f, internal: bool, internal_junctions: bool | None = None) -> RoadNet:
                             break
             for prm in _children(el, "param"):
                 if prm.get("key") == "tunnel":
-                    e.tunnel = prm.get("value", "no") not in ("no", "")
+                    e.tunnel = prm.get("value", "no") not in SURFACE_TUNNEL_VALUES
             edges[e.id] = e
         elif tag == "junction":
             get = el.get

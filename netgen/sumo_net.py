@@ -41,7 +41,7 @@ def sumo_env() -> dict:
     return env
 
 
-NETCONVERT_VERSION_TAG = "netconvert-opts-v4"
+NETCONVERT_VERSION_TAG = "netconvert-opts-v5"
 
 
 def netconvert_args(osm_xml: Path, out_net: Path, proj: str, geo_boundary=None, tls_join: bool = False) -> list[str]:
@@ -60,6 +60,11 @@ def netconvert_args(osm_xml: Path, out_net: Path, proj: str, geo_boundary=None, 
     sidewalk to every tram and railway edge of central Helsinki (285 tram, 183 rail): people
     walked along the rails, and where a tram track runs beside a street its sidewalk lay
     0.2-0.5 m from the centre of a car lane, so they walked through the cars.
+
+    The OSM tags ``tunnel``, ``bridge`` and ``layer`` are kept as edge parameters (the world
+    does not mesh tunnels). ``highway=raceway`` is left out: Monaco's Grand Prix circuit is
+    mapped as a second way over the public streets it borrows, and as its own 2.7 km edge it
+    laid a second road surface over them, at other heights, with SUMO traffic on it.
     """
     tm = sumo_home() / "data" / "typemap"
     args = [
@@ -77,6 +82,7 @@ def netconvert_args(osm_xml: Path, out_net: Path, proj: str, geo_boundary=None, 
         "--junctions.corner-detail", "5", "--rectangular-lane-cut", "false",
         "--osm.elevation", "false",
         "--osm.all-attributes", "true", "--osm.extra-attributes", "tunnel,bridge,layer",
+        "--remove-edges.by-type", "highway.raceway",
         "--no-warnings", "false", "--aggregate-warnings", "5",
         "-o", str(out_net),
     ]
