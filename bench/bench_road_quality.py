@@ -1,0 +1,126 @@
+"""Road surface quality of built worlds: what a car's wheels and chassis meet.
+
+For each world folder given (built by ``cosim build``), from its tile meshes and terrain:
+
+* steep surface: area of asphalt and sidewalk faces steeper than 40 % and 70 %, per element
+  (``lane``, ``junction``, ``junction_lane``, ``walkingarea``); and the junctions'
+  area-weighted grade at the 90th / 99th percentile (a fold between road ends of different
+  heights shows as a steep face);
+* steps between roads: 5 m cells where faces of two different roads (not the two directions
+  of one street) lie within 0.8 m of each other in plan and more than 0.15 / 0.3 / 0.6 m
+  apart in height;
+* terrain above the road: the share of asphalt faces whose centre lies under the terrain by
+  more than 5 / 15 / 30 / 100 cm (the terrain is levelled 8 cm under the road; above it,
+  the car drives on the terrain).
+
+    .venv/bin/python bench/bench_road_quality.py WORLD [WORLD ...]
+
+Prints one block per world and the figures side by side.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from cosim.world import World  # noqa: E402
+
+
+def _groups(world: World, kind: str):
+    for c in world.chunks.values():
+        for tile in c.get("tiles", {}).values():
+            if kind in tile:
+                scene = trimesh.load(c["_base"] / tile[kind], group_material=False, split_groups=True,
+                                     process=False, force="scene")
+                yield from scene.geometry.items()
+
+
+def _road_of(name: str) -> str:
+    """The street of a lane piece: its edge without the direction sign."""
+    e = name.split("/", 1)[-1].rsplit("_", 1)[0]
+    return e[1:] if e.startswith("-") else e
+
+
+def measure(path: str) -> dict:
+    world = World(path)
+    steep = defaultdict(lambda: [0.0, 0.0, 0.0])
+    jgrade, jarea = [], []
+    C, Z, R = [], [], []
+    above = []
+    for kind in ("asphalt", "sidewalk"):
+        for name, g in _groups(world, kind):
+            n = g.face_normals
+            grade = np.hypot(n[:, 0], n[:, 1]) / np.maximum(np.abs(n[:, 2]), 1e-9)
+            area = g.area_faces
+            el = f"{kind}/{name.split('/', 1)[0]}"
+            steep[el][0] += float(area.sum())
+            steep[el][1] += float(area[grade > 0.4].sum())
+            steep[el][2] += float(area[grade > 0.7].sum())
+            if kind != "asphalt":
+                continue
+            P = g.triangles_center
+            if name.startswith("junction/"):
+                jgrade.append(grade)
+                jarea.append(area)
+            if name.startswith("lane/"):
+                C.append(P[:, :2])
+                Z.append(P[:, 2])
+                R += [_road_of(name)] * len(P)
+            d = world.ground_z(P[:, 0], P[:, 1]) - P[:, 2]
+            above.append(d[np.isfinite(d)])
+    out = {"steep": {k: v for k, v in sorted(steep.items())}}
+    if jgrade:
+        g, a = np.concatenate(jgrade), np.concatenate(jarea)
+        o = np.argsort(g)
+        cum = np.cumsum(a[o]) / a.sum()
+        out["junction_grade_p90_p99"] = [float(x) for x in g[o][np.searchsorted(cum, [0.9, 0.99])]]
+    if C:
+        C, Z, R = np.vstack(C), np.concatenate(Z), np.array(R)
+        pairs = cKDTree(C).query_pairs(0.8, output_type="ndarray")
+        pairs = pairs[R[pairs[:, 0]] != R[pairs[:, 1]]]
+        dz = np.abs(Z[pairs[:, 0]] - Z[pairs[:, 1]])
+        out["step_cells"] = {th: len({(int(x // 5), int(y // 5)) for x, y in C[pairs[dz > th, 0]]})
+                             for th in (0.15, 0.3, 0.6)}
+    if above:
+        d = np.concatenate(above)
+        out["terrain_above"] = {th: float(np.mean(d > th)) for th in (0.05, 0.15, 0.3, 1.0)}
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("worlds", nargs="+")
+    a = ap.parse_args(argv)
+    rows = []
+    for w in a.worlds:
+        r = measure(w)
+        rows.append((w, r))
+        print(f"== {w}")
+        for el, (tot, s40, s70) in r["steep"].items():
+            print(f"   {el:22s} area {tot:9.0f} m2 | steeper than 40 %: {s40:8.1f} m2 | than 70 %: {s70:8.1f} m2")
+        if "junction_grade_p90_p99" in r:
+            p90, p99 = r["junction_grade_p90_p99"]
+            print(f"   junction grade, area-weighted: p90 {p90:.3f}, p99 {p99:.3f}")
+        if "step_cells" in r:
+            print("   5 m cells with a step between two roads: " +
+                  ", ".join(f"> {th} m: {n}" for th, n in r["step_cells"].items()))
+        if "terrain_above" in r:
+            print("   asphalt faces under the terrain by more than: " +
+                  ", ".join(f"{th} m: {100 * v:.1f} %" for th, v in r["terrain_above"].items()))
+    if len(rows) > 1:
+        print("\nside by side: world | steep > 70 % (m2) | step cells > 0.6 m | terrain above by > 0.3 m")
+        for w, r in rows:
+            s70 = sum(v[2] for v in r["steep"].values())
+            print(f"  {w} | {s70:.0f} | {r.get('step_cells', {}).get(0.6)} | "
+                  f"{100 * r.get('terrain_above', {}).get(0.3, float('nan')):.1f} %")
+
+
+if __name__ == "__main__":
+    main()
