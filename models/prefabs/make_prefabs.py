@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -144,6 +145,10 @@ def build(out_dir: Path = HERE) -> dict:
             raise SystemExit(f"{name}: {faces} faces, over the {FACE_LIMIT} limit")
         obj, files = trimesh.exchange.obj.export_obj(scene, include_normals=True, return_texture=True,
                                                      mtl_name=f"{name}.mtl", header=None, digits=5)
+        # a coordinate that rounds to zero is written "0.00000", never "-0.00000": its sign
+        # comes from the last bits of the arithmetic, which differ between numpy/trimesh
+        # versions, and the files are compared byte for byte with a fresh build
+        obj = re.sub(r"(?<![\w.])-(0\.0+)(?![\w.])", r"\1", obj)
         (out_dir / f"{name}.obj").write_text(obj)
         for fname, data in files.items():
             (out_dir / fname).write_bytes(data)
