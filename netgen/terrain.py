@@ -19,6 +19,9 @@ from scipy.spatial import cKDTree
 
 ROAD_SINK_M = 0.08       # terrain under a road sits this far below the road surface
 INNER_CELLS = 0.75       # nodes this many cells beyond a road's edge are levelled too (flat bilinear surface)
+STACK_NEIGHBOURS = 16    # road points looked at per node for a road further down
+STACK_STEP_M = 0.5       # ... lower than the nearest road point by more than this
+STACK_GRADE = 0.25       # ... plus this grade times their distance (steeper than any street)
 
 
 def levelling_reach(halfwidth: float, spacing: float) -> float:
@@ -157,15 +160,30 @@ def level_under_roads(grid: TerrainGrid, pts: np.ndarray, halfwidth: np.ndarray,
     cand = _nodes_near(grid, pts, reach)
     ny, nx = grid.z.shape
     q = np.column_stack([grid.xmin + (cand % nx) * sp, grid.ymin + (cand // nx) * sp])
-    d, idx = tree.query(q, k=1, distance_upper_bound=reach, workers=-1)     # threads: a core may be idle
-    hit = np.isfinite(d)
+    k = min(STACK_NEIGHBOURS, len(pts))
+    d, idx = tree.query(q, k=k, distance_upper_bound=reach, workers=-1)     # threads: a core may be idle
+    d, idx = d.reshape(len(q), k), idx.reshape(len(q), k)
+    hit = np.isfinite(d[:, 0])
     z = grid.z.ravel().copy()
     z0 = z.copy()
     hi = cand[hit]
-    di = d[hit]
-    ii = idx[hit]
+    d, idx = d[hit], idx[hit]
+    di = d[:, 0]
+    ii = idx[:, 0]
     inner = halfwidth[ii] + INNER_CELLS * sp
     road_z = pts[ii, 2] - ROAD_SINK_M
+    # a road below the nearest one, within its own reach of the node, by more than any road
+    # grade explains between the two points (a street further down a hillside, not the same
+    # street's slope): the node takes the lowest such road, so the terrain between the two
+    # does not rise through the lower one
+    ok = np.isfinite(d)
+    jj = np.where(ok, idx, 0)
+    zj = np.where(ok & (d <= halfwidth[jj] + INNER_CELLS * sp), pts[jj, 2], np.inf)
+    gap = np.hypot(pts[jj, 0] - pts[ii, 0][:, None], pts[jj, 1] - pts[ii, 1][:, None])
+    below = zj < pts[ii, 2][:, None] - STACK_STEP_M - STACK_GRADE * gap
+    if below.any():
+        lower = np.where(below, zj, np.inf).min(axis=1)
+        road_z = np.where(np.isfinite(lower), lower - ROAD_SINK_M, road_z)
     w = np.clip(1.0 - (di - inner) / blend_m, 0.0, 1.0)     # 1 on the road, 0 beyond the blend
     z[hi] = w * road_z + (1.0 - w) * z0[hi]
     grid.z = z.reshape(grid.z.shape)

@@ -774,20 +774,59 @@ def test_levelling_looks_up_only_nodes_near_roads_with_the_same_result(tmp_path)
     pts, hw = sup["p"], sup["h"]
     g = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, grid.z.copy())
     figures = level_under_roads(g, pts, hw)
-    # every node, as before the shortcut
+    # every node, as before the shortcut (node positions as the levelling computes them)
     sp = grid.spacing
-    X, Y = grid.nodes()
+    ny, nx = grid.z.shape
+    every = np.arange(ny * nx)
     reach = float(hw.max()) + terrain.INNER_CELLS * sp + sp
-    d, idx = cKDTree(pts[:, :2]).query(np.column_stack([X.ravel(), Y.ravel()]), k=1, distance_upper_bound=reach)
-    hi = np.flatnonzero(np.isfinite(d))
+    dk, ik = cKDTree(pts[:, :2]).query(
+        np.column_stack([grid.xmin + (every % nx) * sp, grid.ymin + (every // nx) * sp]),
+        k=terrain.STACK_NEIGHBOURS, distance_upper_bound=reach)
+    hi = np.flatnonzero(np.isfinite(dk[:, 0]))
+    dk, ik = dk[hi], ik[hi]
+    d, idx = dk[:, 0], ik[:, 0]
     z0 = grid.z.ravel()
     z = z0.copy()
-    wgt = np.clip(1.0 - (d[hi] - (hw[idx[hi]] + terrain.INNER_CELLS * sp)) / sp, 0.0, 1.0)
-    z[hi] = wgt * (pts[idx[hi], 2] - terrain.ROAD_SINK_M) + (1.0 - wgt) * z0[hi]
-    assert np.array_equal(g.z.ravel(), z)
+    wgt = np.clip(1.0 - (d - (hw[idx] + terrain.INNER_CELLS * sp)) / sp, 0.0, 1.0)
+    road = pts[idx, 2].copy()
+    # a road further down within its own reach of the node (node by node, as the rule says)
+    for n in range(len(hi)):
+        i, best = idx[n], np.inf
+        for dist, j in zip(dk[n], ik[n]):
+            if np.isfinite(dist) and dist <= hw[j] + terrain.INNER_CELLS * sp and \
+                    pts[j, 2] < pts[i, 2] - terrain.STACK_STEP_M - terrain.STACK_GRADE * np.hypot(*(pts[j, :2] - pts[i, :2])):
+                best = min(best, pts[j, 2])
+        if np.isfinite(best):
+            road[n] = best
+    z[hi] = wgt * (road - terrain.ROAD_SINK_M) + (1.0 - wgt) * z0[hi]
+    assert np.allclose(g.z.ravel(), z, rtol=0, atol=1e-9)
     assert figures["levelled_nodes"] == int(np.sum(wgt >= 1.0)) > 1000
     assert np.isin(hi, terrain._nodes_near(grid, pts, reach)).all()
     assert len(terrain._nodes_near(grid, pts, reach)) < z.size          # a shortcut at all
+
+
+def test_levelling_keeps_the_terrain_under_a_street_below_another():
+    """Two streets 7 m apart on a hillside, 3 m apart in height, on a 10 m terrain grid: no
+    node takes the upper street's height over the lower one (taking the nearest street's
+    height, the terrain rose 1-2 m through the lower street); a single street climbing at
+    20 % keeps the height of its nearest point (its own slope is not a second street)."""
+    from netgen.terrain import ROAD_SINK_M, TerrainGrid, level_under_roads
+
+    x = np.arange(-100.0, 100.01, 2.5)
+    low = np.column_stack([x, np.zeros_like(x), np.zeros_like(x)])
+    high = np.column_stack([x, np.full_like(x, 7.0), np.full_like(x, 3.0)])
+    pts, hw = np.vstack([low, high]), np.full(2 * len(x), 3.0)
+    g = TerrainGrid(-150.0, -55.0, 10.0, np.full((11, 31), 1.5))     # node rows at y = -5 and 5
+    level_under_roads(g, pts, hw)
+    on_low = g.sample_tri(np.arange(-80.0, 80.0, 1.3), np.full(124, 0.0))
+    assert on_low.max() <= -ROAD_SINK_M + 1e-9, on_low.max()
+    # one street up a 20 % slope: the nodes along it follow it
+    y = np.arange(-40.0, 40.01, 2.5)
+    steep = np.column_stack([np.zeros_like(y), y, 0.2 * y])
+    g2 = TerrainGrid(-50.0, -50.0, 10.0, np.zeros((11, 11)))
+    level_under_roads(g2, steep, np.full(len(y), 3.0))
+    along = g2.sample_tri(np.zeros(33), np.arange(-40.0, 40.01, 2.5))
+    assert np.allclose(along, 0.2 * np.arange(-40.0, 40.01, 2.5) - ROAD_SINK_M, atol=1e-6)
 
 
 def test_prepared_building_files_are_the_plain_writers_files(tmp_path):
