@@ -201,6 +201,8 @@ def sim_config_from_args(a):
         cfg.sumo_gui = True
     if a.respect_speed_limit:
         cfg.respect_speed_limit = True
+    if getattr(a, "swap_when_ready", False):
+        cfg.repeatable = False
     return cfg.validate()
 
 
@@ -286,7 +288,10 @@ def make_parser() -> argparse.ArgumentParser:
     g.add_argument("--duration", type=float, metavar="S", help="simulated seconds (default 60)")
     g.add_argument("--speed", type=float, metavar="MPS", help="the ego's set speed in m/s (default 10)")
     g.add_argument("--traffic", metavar="DENSITY", help="none | light | normal | dense | vehicles per km2")
-    g.add_argument("--seed", type=int, help="random seed: the same seed repeats the run")
+    g.add_argument("--seed", type=int, help="random seed: the same seed (world and --parallel-sumo) repeats the run")
+    g.add_argument("--swap-when-ready", action="store_true",
+                   help="swap to the next window as soon as it is built, not at a fixed simulated time "
+                        "after its build started (never waits for a build; the run is not repeatable)")
     g.add_argument("--start", metavar="LAT,LON", help="start here (snapped to the nearest lane); default: the centre")
     g.add_argument("--to", metavar="LAT,LON", help="drive to this GPS coordinate by road")
     g.add_argument("--respect-speed-limit", action="store_true", help="never exceed the lane's speed limit")

@@ -65,6 +65,10 @@ class SimConfig:
     gui: bool = False                     # PyBullet's 3D window
     render: bool = False                  # load visual meshes for camera images (the Qt GUI)
     realtime: bool = False                # pace the loop to wall-clock time (GUI use)
+    # the same seed, world and SUMO mode repeat the run step for step: a window swap comes a
+    # fixed simulated time after its build started (waiting for a late build) instead of as
+    # soon as the build is ready (cosim.streaming)
+    repeatable: bool = True
     name: str = ""
 
     def validate(self) -> "SimConfig":
@@ -130,7 +134,8 @@ class SimConfig:
                    "respect_speed_limit": "respect_speed_limit", "max_snap_m": "max_snap_m",
                    "duration_s": "duration_s", "step_length_s": "step_length_s", "physics_hz": "physics_hz",
                    "sensor_range_m": "sensor_range_m", "mirror_radius_m": "mirror_radius_m",
-                   "telemetry": "telemetry", "gui": "gui", "realtime": "realtime", "render": "render"}
+                   "telemetry": "telemetry", "gui": "gui", "realtime": "realtime", "render": "render",
+                   "repeatable": "repeatable"}
         for table, tname in ((t, "traffic"), (e, "ego"), (r, "run")):
             for k, v in table.items():
                 if k not in mapping:

@@ -18,6 +18,12 @@ When it is ready:
   visibly vanishes, and the new demand's own actors there make room for them;
 * the ego's route is planned again on the new network.
 
+A run is repeatable (``SimConfig.repeatable``, the default): the swap comes
+:data:`SWAP_DELAY_S` of simulated time after the build started, however long the build took
+in wall-clock time. A window ready earlier waits; one not ready by then is waited for (a long
+frame, logged). Without it the swap comes as soon as the build and SUMO are ready, so that
+the same seed can give another run on a busier or slower machine.
+
 With one ring a window reaches at least one chunk beyond the car's chunk, so the car can
 drive a whole chunk while the next window is built.
 """
@@ -33,6 +39,9 @@ from .workers import start_worker, worker_connection
 
 log = logging.getLogger("cosim.streaming")
 BUILD_NICENESS = 5     # window builds run at this niceness (netconvert inherits it)
+#: simulated seconds from a window build's start to its swap in a repeatable run: the car
+#: drives at most 600 m in it at 30 m/s, and a window reaches a chunk (1 km) beyond its centre
+SWAP_DELAY_S = 20.0
 
 
 def _build_window(cfg_dict: dict, window: tuple, out: str, traffic, seed: int, duration: float, conn):
@@ -68,6 +77,9 @@ class WorldStreamer:
         self.conn = None
         self.job_window = None
         self.job_started = 0.0
+        self.repeatable = bool(getattr(sim.cfg, "repeatable", True))
+        self.due_t = None                 # sim time of the swap in a repeatable run
+        self.waited_s: list = []          # wall time waited for a late build at the swap's due time
         self.swaps = 0
         self.swap_ms: list = []
         self.swap_phases_ms: list = []    # per swap: {phase: ms}
@@ -92,17 +104,25 @@ class WorldStreamer:
             return
         if self._ending:
             self._ending = [p for p in self._ending if p.poll() is None]
+        due = self._due()
         if self.ready is not None:
-            self._swap_when_ready()
+            if due is False:
+                return                          # (SUMO goes on loading in its own process)
+            self._swap_when_ready(block=due is True)
             return
         ij = self.sim.world.frame.chunk_of(x, y)
         if self.proc is None and ij != self.center and ij not in self.built:
             self._start(ij)
-        if self.proc is not None and (self.conn.poll() or self.proc.poll() is not None):
+            due = self._due()
+        if self.proc is not None and (due is True or self.conn.poll() or self.proc.poll() is not None):
+            t_wait = time.perf_counter()
             try:
-                status, out, routes = self.conn.recv()
+                status, out, routes = self.conn.recv()      # (at the due time: waits for the build)
             except (EOFError, OSError):
                 status, out, routes = "error", f"the build process ended with exit code {self.proc.poll()}", []
+            if due is True and time.perf_counter() - t_wait > 0.05:
+                self.waited_s.append(round(time.perf_counter() - t_wait, 2))
+                log.info("waited %.1f s for the window build at its swap time (a repeatable run)", self.waited_s[-1])
             self._ending.append(self.proc)     # it exits by itself: reaped later, not waited for here
             self.proc = None
             self.conn.close()
@@ -112,6 +132,7 @@ class WorldStreamer:
             if status != "ok":
                 self.errors.append(out)
                 self.built.add(window)          # do not retry in a loop; reported in the summary
+                self.due_t = None
                 log.warning("could not build the window around chunk %s: %s", window, out)
                 return
             net = self._net_of(out)
@@ -120,19 +141,31 @@ class WorldStreamer:
                     self.sim.traffic.prepare_network(net, routes)
                 except Exception as e:          # the swap restarts SUMO itself then
                     log.info("could not start SUMO ahead on the next network: %s", e)
-                self.ready = (window, out, routes)
-            else:
-                self._swap(window, out, routes)
+            self.ready = (window, out, routes)
+            if due is not False:                # (due now: in this frame, whenever the build ended)
+                self._swap_when_ready(block=due is True)
 
-    def _swap_when_ready(self):
+    def _due(self):
+        """In a repeatable run, whether the swap's time has come (True / False); None when
+        the run is not repeatable or nothing is being built."""
+        if not self.repeatable or self.due_t is None:
+            return None
+        return self.sim.t >= self.due_t - 1e-9
+
+    def _swap_when_ready(self, block: bool = False):
         """With SUMO started ahead on the new network: once it has loaded, it plans the car's
         route from where the car is (in the background too; in a junction, once past it), and
         once that is answered the swap takes both. (A SUMO restarted after a crash has lost
-        what was prepared: then swap at once, the slow way.)"""
+        what was prepared: then swap at once, the slow way.) With ``block`` (a repeatable
+        run's due time) each of these waits for SUMO instead of trying again next frame, so
+        the route is asked in the first frame the car allows and the swap is the frame after."""
         sim, traffic = self.sim, self.sim.traffic
         if getattr(traffic, "preparing", None) is not None:
-            if not traffic.prepared_ready():
+            t_wait = time.perf_counter()
+            if not traffic.prepared_ready(block=block):
                 return
+            if block and time.perf_counter() - t_wait > 0.05:
+                self.waited_s.append(round(time.perf_counter() - t_wait, 2))
             if not self.plan_asked:
                 args = sim.replan_args()
                 if args is None:
@@ -146,6 +179,7 @@ class WorldStreamer:
         window, out, routes = self.ready
         self.ready = None
         self.plan_asked = False
+        self.due_t = None
         self._swap(window, out, routes, plan)
 
     @staticmethod
@@ -165,6 +199,7 @@ class WorldStreamer:
         self.conn.send((self.base_cfg, window, out, cfg.traffic, cfg.seed, max(cfg.duration_s, 60.0) + 60.0))
         self.job_window = window
         self.job_started = time.perf_counter()
+        self.due_t = self.sim.t + SWAP_DELAY_S
         log.info("building the window around chunk %s in the background", window)
 
     def _swap(self, window, out, routes, plan=None):

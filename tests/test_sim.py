@@ -143,7 +143,8 @@ def test_next_window_built_in_background_and_swapped_in(motorway_world):
     network, keeping the actors near the car, and the drive goes on."""
     import time
 
-    cfg = SimConfig(world_dir=str(motorway_world), traffic="light", seed=3, speed_mps=25.0, duration_s=900.0)
+    cfg = SimConfig(world_dir=str(motorway_world), traffic="light", seed=3, speed_mps=25.0, duration_s=900.0,
+                    repeatable=False)                      # (the swap as soon as the window is ready)
     sim = Simulation(cfg).setup()
     try:
         while sim.streamer.building is None and sim.t < 120.0:
@@ -189,6 +190,48 @@ def test_next_window_built_in_background_and_swapped_in(motorway_world):
     assert summary.distance_m - d0 > 200          # and the car drives on, on the new network
     assert summary.sensor_range_violations == 0
     assert summary.ego_collisions == 0, sim.collision_log
+
+
+def test_the_same_seed_repeats_the_run_across_a_window_swap(motorway_world):
+    """A window's build takes wall-clock time, which differs from run to run (a busy machine,
+    a build already on disk): in a repeatable run (the default) the swap still comes
+    SWAP_DELAY_S of simulated time after the build started, so the same seed drives the same
+    run step for step. Run B holds the loop until its build has finished (as a slow loop would
+    see it: the window ready at once); run A does not. (With the swap as soon as the window is
+    ready, B swapped about 20 s of simulated time before A here.)"""
+    import time
+
+    from cosim.streaming import SWAP_DELAY_S
+
+    def run(hold: bool):
+        cfg = SimConfig(world_dir=str(motorway_world), traffic="light", seed=5, speed_mps=25.0, duration_s=300.0)
+        sim = Simulation(cfg).setup()
+        trace, started, swapped = [], None, None
+        try:
+            while sim.t < 200.0 and (swapped is None or sim.t < swapped + 10.0):
+                ego = sim.step()
+                trace.append((ego.t, ego.x, ego.y, ego.yaw, ego.speed))
+                if started is None and sim.streamer.building is not None:
+                    started = sim.t
+                    if hold:
+                        deadline = time.time() + 600
+                        while sim.streamer.proc.poll() is None and time.time() < deadline:
+                            time.sleep(0.2)
+                if swapped is None and sim.streamer.swaps:
+                    swapped = sim.t
+            assert not sim.streamer.errors, sim.streamer.errors
+        finally:
+            sim.teardown()
+        return np.array(trace), started, swapped
+
+    a, a_start, a_swap = run(hold=False)
+    b, b_start, b_swap = run(hold=True)
+    assert a_start is not None and a_swap is not None, "no window swap within 200 s"
+    assert (b_start, b_swap) == (a_start, a_swap)
+    # the swap's first frame comes the frame after the route on the new network is asked
+    # (SWAP_DELAY_S after the build's start, or a little later when the car is in a junction)
+    assert a_start + SWAP_DELAY_S <= a_swap + 1e-6 <= a_start + SWAP_DELAY_S + 3.0
+    assert a.shape == b.shape and np.array_equal(a, b)
 
 
 def test_sumo_worker_crash_is_survived(motorway_world):
