@@ -222,6 +222,70 @@ def _unturnable(sim, lane: str, link) -> bool:
         return False
 
 
+#: an edge shorter than this between two junctions is checked with the turns on both sides
+#: of it as one: netconvert joins close junctions by edges of 0.2 m, and two turns that each
+#: pass on their own can make a hairpin together (Monaco: 0.6 m and 0 m alone, 2.5 m chained)
+CHAIN_EDGE_M = 10.0
+
+
+def _short(sim, edge: str) -> bool:
+    lanes = _drivable_lanes(sim, edge)
+    return bool(lanes) and float(sim.lane.getLength(lanes[0])) < CHAIN_EDGE_M
+
+
+def _chain_deviation(sim, lane: str, link1, link2, lead_m: float = 10.0) -> float:
+    """:func:`turn_deviation` through two links in a row: the last ``lead_m`` metres of
+    ``lane``, ``link1``'s junction lane, its (short) target lane, ``link2``'s junction lane
+    and the first ``lead_m`` metres of its target (cached like :func:`_link_deviation`)."""
+    def shape(ln):
+        return np.array(sim.lane.getShape(ln), dtype=float)[:, :2] if ln else np.zeros((0, 2))
+
+    def via_shape(via):
+        """A link's junction lanes, all of them (a junction may split a link in two)."""
+        parts, guard = [], 0
+        while via and via.startswith(":") and guard < 5:
+            parts.append(shape(via))
+            nxt = sim.lane.getLinks(via)
+            via = nxt[0][0] if nxt else None
+            guard += 1
+        return np.vstack(parts) if parts else np.zeros((0, 2))
+
+    a, mid, b = shape(lane), shape(link1[0]), shape(link2[0])
+    v1, v2 = via_shape(link1[4]), via_shape(link2[4])
+    key = ("chain", lane, link1[0], link1[4], link2[0], link2[4], tuple(a[-1]), tuple(mid[0]), tuple(b[0]))
+    out = _TURN_CACHE.get(key)
+    if out is None:
+        out = turn_deviation(np.vstack([_tail(a, lead_m), v1, mid, v2, _tail(b[::-1], lead_m)[::-1]]),
+                             car_turn_radius())
+        if len(_TURN_CACHE) > 100_000:
+            _TURN_CACHE.clear()
+        _TURN_CACHE[key] = out
+    return out
+
+
+def _chain_unturnable(sim, edge: str, short: str, nxt: str) -> bool:
+    """Does every way of the route's steps edge -> short -> nxt (``short`` a short edge between
+    two junctions) run wider than :data:`TURN_DEVIATION_MAX_M` at full lock, the two turns
+    taken as one?"""
+    found = other = False
+    for ln in _drivable_lanes(sim, edge):
+        for l1 in sim.lane.getLinks(ln):
+            if l1[0].rsplit("_", 1)[0] != short or not _lane_allows(sim, l1[0]):
+                continue
+            for l2 in sim.lane.getLinks(l1[0]):
+                if l2[0].rsplit("_", 1)[0] != nxt or not _lane_allows(sim, l2[0]):
+                    continue
+                try:
+                    bad = _chain_deviation(sim, ln, l1, l2) > TURN_DEVIATION_MAX_M
+                except Exception:
+                    bad = False
+                if bad:
+                    found = True
+                else:
+                    other = True
+    return found and not other
+
+
 def is_tunnel(sim, edge: str) -> bool:
     """Is ``edge`` in a tunnel (the OSM tag, kept by netconvert as the edge's parameter)? The
     world has no tunnels: their roads are not meshed."""
@@ -233,9 +297,11 @@ def is_tunnel(sim, edge: str) -> bool:
         return False
 
 
-def _turnaround(sim, edge: str, nxt: str) -> bool:
+def _turnaround(sim, edge: str, nxt: str, after: str | None = None) -> bool:
     """Does the route's step edge -> nxt only have links the car cannot drive (turnarounds,
-    turns far tighter than its full lock: :func:`_unturnable`), or enter a tunnel?"""
+    turns far tighter than its full lock: :func:`_unturnable`), or enter a tunnel? With
+    ``after`` (the edge after ``nxt``) and ``nxt`` shorter than :data:`CHAIN_EDGE_M`, also
+    when the two turns around ``nxt`` taken as one cannot be driven (:func:`_chain_unturnable`)."""
     if is_tunnel(sim, nxt) and not is_tunnel(sim, edge):
         return True
     found = other = False
@@ -246,7 +312,9 @@ def _turnaround(sim, edge: str, nxt: str) -> bool:
                     found = True
                 else:
                     other = True
-    return found and not other
+    if found and not other:
+        return True
+    return after is not None and _short(sim, nxt) and _chain_unturnable(sim, edge, nxt, after)
 
 
 def route_without_turnarounds(sim, src: str, dst: str, max_edges: int = 20000) -> list[str] | None:
@@ -261,15 +329,7 @@ def route_without_turnarounds(sim, src: str, dst: str, max_edges: int = 20000) -
     def nexts(e):
         out = succ.get(e)
         if out is None:
-            best = {}
-            for ln in _drivable_lanes(sim, e):
-                for link in sim.lane.getLinks(ln):
-                    if not _lane_allows(sim, link[0]):
-                        continue
-                    ne = link[0].rsplit("_", 1)[0]
-                    if ne not in best and not _unturnable(sim, ln, link) and (ne == dst or not is_tunnel(sim, ne)):
-                        best[ne] = float(sim.lane.getLength(link[0])) + float(link[7] or 0.0)
-            out = succ[e] = list(best.items())
+            out = succ[e] = _drivable_nexts(sim, e, dst)
         return out
 
     dist = {src: 0.0}
@@ -285,20 +345,84 @@ def route_without_turnarounds(sim, src: str, dst: str, max_edges: int = 20000) -
         seen += 1
         if seen > max_edges:
             break
-        for ne, w in nexts(e):
+        for ne, w, via in nexts(e):
             nd = d + w
             if nd < dist.get(ne, float("inf")):
                 dist[ne] = nd
-                prev[ne] = e
+                prev[ne] = (e, via)
                 heapq.heappush(heap, (nd, ne))
     if dst not in prev:
         return None
     out = [dst]
     while out[-1] != src:
-        out.append(prev[out[-1]])
+        e, via = prev[out[-1]]
+        if via is not None:
+            out.append(via)
+        out.append(e)
         if len(out) > max_edges:
             return None
     return out[::-1]
+
+
+def _drivable_nexts(sim, e: str, dst: str | None = None) -> list:
+    """[(next edge, metres, short edge passed on the way or None)] the car can drive from edge
+    ``e`` (no turnaround, no turn it cannot make, no tunnel but ``dst``): through a short edge
+    (:data:`CHAIN_EDGE_M`) at once to the edges after it, the two turns checked as one."""
+    best = {}
+    for ln in _drivable_lanes(sim, e):
+        for link in sim.lane.getLinks(ln):
+            if not _lane_allows(sim, link[0]):
+                continue
+            ne = link[0].rsplit("_", 1)[0]
+            if ne in best or _unturnable(sim, ln, link) or (ne != dst and is_tunnel(sim, ne)):
+                continue
+            w = float(sim.lane.getLength(link[0])) + float(link[7] or 0.0)
+            if ne == dst or not _short(sim, ne):
+                best[ne] = (w, None)
+                continue
+            for l2 in sim.lane.getLinks(link[0]):
+                nne = l2[0].rsplit("_", 1)[0]
+                if (nne in best and best[nne][0] <= w) or not _lane_allows(sim, l2[0]) or \
+                        _unturnable(sim, link[0], l2) or (nne != dst and is_tunnel(sim, nne)):
+                    continue
+                try:
+                    if _chain_deviation(sim, ln, link, l2) > TURN_DEVIATION_MAX_M:
+                        continue
+                except Exception:
+                    pass
+                best[nne] = (w + float(sim.lane.getLength(l2[0])) + float(l2[7] or 0.0), ne)
+    return [(ne, w, via) for ne, (w, via) in best.items()]
+
+
+def escapes(sim, edge: str, reach_m: float = 1000.0, max_edges: int = 3000) -> bool:
+    """Can the car drive ``reach_m`` metres on from the end of ``edge`` without a step it
+    cannot drive (:func:`_drivable_nexts`)? False at the head of a one-way street whose every
+    way out has a turn tighter than the car can make (or a tunnel): a route ending there leaves
+    the car nowhere to go but through it."""
+    import heapq
+
+    dist = {edge: 0.0}
+    heap = [(0.0, edge)]
+    seen = 0
+    while heap:
+        d, e = heapq.heappop(heap)
+        if d >= reach_m:
+            return True
+        if d > dist.get(e, float("inf")):
+            continue
+        seen += 1
+        if seen > max_edges:
+            return True
+        try:
+            nx = _drivable_nexts(sim, e)
+        except Exception:
+            continue
+        for ne, w, _via in nx:
+            nd = d + w
+            if nd < dist.get(ne, float("inf")):
+                dist[ne] = nd
+                heapq.heappush(heap, (nd, ne))
+    return False
 
 
 def without_turnarounds(sim, edges: list[str]) -> tuple[list[str], list]:
@@ -313,13 +437,16 @@ def without_turnarounds(sim, edges: list[str]) -> tuple[list[str], list]:
     i = 1
     while i < len(edges):
         cur, nxt = out[-1], edges[i]
+        after = edges[i + 1] if i + 1 < len(edges) else None
         try:
             uturn = _turnaround(sim, cur, nxt)
+            chain = not uturn and _turnaround(sim, cur, nxt, after)
         except Exception:
-            uturn = False
-        if uturn:
-            # (into a tunnel: around the whole tunnel, to the first edge after it)
-            j = i
+            uturn = chain = False
+        if uturn or chain:
+            # (into a tunnel: around the whole tunnel, to the first edge after it; two turns
+            # around a short edge: rejoining after it)
+            j = i + 1 if chain else i
             while j < len(edges) - 1 and is_tunnel(sim, edges[j]):
                 j += 1
             found = _detour(sim, out, edges, i, j, tunnel=j > i or is_tunnel(sim, nxt))
@@ -339,9 +466,9 @@ def without_turnarounds(sim, edges: list[str]) -> tuple[list[str], list]:
 def undrivable_steps(sim, edges: list[str]) -> list:
     """The steps (edge, next edge) of a route the car cannot drive (see :func:`_turnaround`)."""
     out = []
-    for a, b in zip(edges, edges[1:]):
+    for k, (a, b) in enumerate(zip(edges, edges[1:])):
         try:
-            if _turnaround(sim, a, b):
+            if _turnaround(sim, a, b, edges[k + 2] if k + 2 < len(edges) else None):
                 out.append((a, b))
         except Exception:
             pass

@@ -435,8 +435,30 @@ class Simulation:
         if self.t < self._extend_retry_t:
             return
         last = self.route[-1]
+        st = self.vehicle.state()
+        k, s_here, _ = self.path.project(st.x, st.y, self._path_idx)
+        lane = self.path.lane_of[k][0]
+        cur_edge = lane.rsplit("_", 1)[0]
+        first = self.route.index(cur_edge) if cur_edge in self.route else len(self.route) - 1
         try:
-            more = self._random_route(last)
+            at, more, state = self.traffic.random_extension(self.route, first, self._rng.getstate())
+            if at < len(self.route) - 1:
+                # every way on from the route's end has a turn the car cannot make: the way
+                # out from an earlier edge, the path planned again from the car (once out of
+                # a junction: tried again in a moment, the same draw)
+                if lane.startswith(":"):
+                    self._extend_retry_t = self.t + 0.5
+                    return
+                self._rng.setstate(state)
+                route = self.route[first:at] + more
+                pos = self.traffic.lane_pos(lane, st.x, st.y)
+                self.path = self.traffic.lane_path(route, start_lane=lane, start_pos=pos)
+                self.route = route
+                self._path_idx = self.path.project(st.x, st.y, 0)[0]
+                log.info("route cut back to %s: every way on from %s has a turn the car cannot make",
+                         route[at - first], last)
+                return
+            self._rng.setstate(state)
         except CosimError as e:
             # the route's last edge leads nowhere (a dead end, the network's edge): a new route
             # from where the car is, else the car stops at the path's end; tried again in 10 s
@@ -448,10 +470,6 @@ class Simulation:
                 log.info("no new route either: %s", e2)
                 self._extend_retry_t = self.t + 10.0
             return
-        st = self.vehicle.state()
-        k, s_here, _ = self.path.project(st.x, st.y, self._path_idx)
-        lane = self.path.lane_of[k][0]
-        cur_edge = lane.rsplit("_", 1)[0]
         if cur_edge in self.route:
             i = self.route.index(cur_edge)
             self.route = self.route[i:] + more[1:]

@@ -971,18 +971,47 @@ class SumoTraffic(Component):
         a = int(np.argmin(dd))
         return float(np.concatenate([[0.0], np.cumsum(np.sqrt(L2))])[a] + t[a] * math.sqrt(L2[a]))
 
-    def random_route(self, edge: str, rng_state, min_len: float = 800.0):
-        """A route from ``edge`` of at least ``min_len`` m to an edge drawn at random (else the
-        longest of 40 tries), through no tunnel and no turn the car cannot make where it can
-        (else the first long one found): (edges, the random generator's state after the
-        draws)."""
-        from .driving import is_tunnel, undrivable_steps, without_turnarounds
-
-        s = self._require()
+    def random_extension(self, route, first: int, rng_state, min_len: float = 800.0, back_max: int = 6):
+        """How to drive on at the end of ``route`` (the car on ``route[first]``): (index ``k``
+        into ``route``, a random route from ``route[k]``, the generator's state). ``k`` is the
+        last edge, unless every way on from there has a turn the car cannot make (the route
+        ends in a one-way street down to a hairpin): then the latest of the ``back_max`` edges
+        before it, back to the car's, from which a way without one leaves."""
         rng = random.Random()
         rng.setstate(rng_state)
+        n = len(route)
+        more, clean = self._draw_route(route[-1], rng, min_len)
+        if not clean:
+            for k in range(n - 2, max(first, n - 1 - back_max) - 1, -1):
+                try:
+                    alt, ok = self._draw_route(route[k], rng, min_len)
+                except SimulationError:
+                    continue
+                if ok:
+                    return k, alt, rng.getstate()
+        return n - 1, more, rng.getstate()
+
+    def random_route(self, edge: str, rng_state, min_len: float = 800.0):
+        """A route from ``edge`` of at least ``min_len`` m to an edge drawn at random, through no
+        tunnel and no turn the car cannot make, to an edge the car can drive on from
+        (``cosim.driving.escapes``); else the longest such route of the 40 tries
+        (shorter: the car draws again at its end); else the first long one found, with such a
+        turn (every way from here has one: a one-way street down a hairpin); else the longest
+        route of the tries: (edges, the random generator's state after the draws)."""
+        rng = random.Random()
+        rng.setstate(rng_state)
+        route, _clean = self._draw_route(edge, rng, min_len)
+        return route, rng.getstate()
+
+    def _draw_route(self, edge: str, rng: random.Random, min_len: float) -> tuple[list, bool]:
+        """``random_route``'s draw with ``rng``: (edges, whether it has no tunnel and no turn
+        the car cannot make)."""
+        from .driving import escapes, is_tunnel, undrivable_steps, without_turnarounds
+
+        s = self._require()
         edges = [e for e in s.edge.getIDList() if not e.startswith(":")]
         best, fallback = [edge], None
+        clean, clean_len = None, 0.0
         for _ in range(40):
             to = rng.choice(edges)
             try:
@@ -991,22 +1020,29 @@ class SumoTraffic(Component):
                 continue
             if not r.edges:
                 continue
+            # through a tunnel (the world has none) or a turn the car cannot make (a hairpin
+            # drawn tighter than its full lock) with no way around: another destination
+            # or ending where every way on has one (the head of a one-way street down to a
+            # hairpin: the route drawn after this one could only go through it)
+            bad = len(r.edges) >= 2 and (any(is_tunnel(s, e) for e in r.edges) or
+                                         bool(undrivable_steps(s, without_turnarounds(s, list(r.edges))[0])) or
+                                         not escapes(s, r.edges[-1]))
             if r.length >= min_len:
-                # through a tunnel (the world has none) or a turn the car cannot make (a hairpin
-                # drawn tighter than its full lock) with no way around: another destination,
-                # unless every way from here has one (a one-way street down a hairpin)
-                if any(is_tunnel(s, e) for e in r.edges) or \
-                        undrivable_steps(s, without_turnarounds(s, list(r.edges))[0]):
+                if bad:
                     fallback = fallback or list(r.edges)
                     continue
-                return list(r.edges), rng.getstate()
+                return list(r.edges), True
             if len(r.edges) > len(best):
                 best = list(r.edges)
+            if not bad and len(r.edges) >= 2 and r.length > clean_len:
+                clean, clean_len = list(r.edges), float(r.length)
+        if clean is not None:
+            return clean, True
         if fallback is not None:
-            return fallback, rng.getstate()
+            return fallback, False
         if len(best) < 2:
             raise SimulationError(f"no route for the ego from edge {edge}")
-        return best, rng.getstate()
+        return best, False
 
     def plan_route(self, lane: str, pos: float, goal_xy=None, rng_state=None, max_goal_snap_m: float = 1e9,
                    min_len: float = 800.0) -> dict:

@@ -614,7 +614,24 @@ def test_routes_go_around_tunnels_and_turns_the_car_cannot_make(monaco):
             assert not undrivable_steps(s, without_turnarounds(s, route)[0])
         # up the one-way street to the hairpin, every way leads through it: a route all the same
         route, _ = sim.traffic.random_route("176477340#0", random.Random(0).getstate(), min_len=400.0)
-        assert undrivable_steps(s, route) == [("176477340#2", "200502322#0")]
+        assert undrivable_steps(s, route)[0] == ("176477340#2", "200502322#0")
+        # two turns around a 0.2 m edge that each pass alone make a hairpin together: east
+        # along 699218006#1, round a traffic island 9 m across, west along 503475642#0 (the
+        # car at full lock would run 1.6 m wide; in the bench's world the same at junctions
+        # 1079751575 / 1079751658 took it 2.7 m off its lane)
+        from cosim.driving import _chain_deviation, _short, route_without_turnarounds
+
+        l1 = [lk for lk in s.lane.getLinks("699218006#1_1") if lk[0] == "-161775593#0_1"][0]
+        l2 = [lk for lk in s.lane.getLinks("-161775593#0_1") if lk[0] == "503475642#0_1"][0]
+        assert _short(s, "-161775593#0") and not _short(s, "699218006#1")
+        assert _link_deviation(s, "699218006#1_1", l1) <= TURN_DEVIATION_MAX_M
+        assert _link_deviation(s, "-161775593#0_1", l2) <= TURN_DEVIATION_MAX_M
+        assert _chain_deviation(s, "699218006#1_1", l1, l2) > 1.2
+        chain = ["699218006#1", "-161775593#0", "503475642#0", "503475642#1"]
+        assert undrivable_steps(s, chain) == [("699218006#1", "-161775593#0")]
+        assert undrivable_steps(s, chain[:2]) == []           # (the step alone passes)
+        way = route_without_turnarounds(s, "699218006#1", "503475642#1")
+        assert way is None or "-161775593#0" not in way
         # SUMO's routes through a tunnel: still connected, same ends; without a tunnel where
         # the car's own router finds a way around (in Monaco the tunnels are mostly the only way)
         from cosim.driving import _drivable_lanes, route_without_turnarounds
