@@ -261,11 +261,30 @@ def _materials() -> dict:
                            roughnessFactor=0.9) for k, c in COLOURS.items()}
 
 
+def underground(tags) -> bool:
+    """A building below the ground (``location=underground``, or a negative ``layer``: an
+    underground station, a car park under a square). Not built: extruded from the ground up,
+    Monaco's underground railway station (``layer=-2``, 150 m long) stood 12 m tall across the
+    streets above it, and the car drove onto its roof."""
+    if str(tags.get("location", "")).strip().lower() in ("underground", "underwater"):
+        return True
+    layer = str(tags.get("layer", "")).strip()
+    try:
+        return int(float(layer)) < 0 if layer else False
+    except ValueError:
+        return False
+
+
 def _footprints(features: OSMFeatures):
-    """[(id, geometry, tags, placeholder)] with repaired geometry, and drop counts."""
-    out, stats = [], {"slivers_dropped": 0, "parts_dropped": 0, "repaired": 0, "placeholders": 0}
+    """[(id, geometry, tags, placeholder)] with repaired geometry (underground buildings left
+    out), and drop counts."""
+    out, stats = [], {"slivers_dropped": 0, "parts_dropped": 0, "repaired": 0, "placeholders": 0,
+                      "underground": 0}
     for f in features.buildings:
         g = f.geometry
+        if underground(f.tags):
+            stats["underground"] += 1
+            continue
         if isinstance(g, Polygon) and g.area >= MIN_AREA_M2 and g.is_valid:   # the usual case
             out.append((f.id, g, f.tags, False))
             continue
@@ -280,6 +299,9 @@ def _footprints(features: OSMFeatures):
         out.append((f.id, kept, f.tags, False))
     bn = features.building_nodes
     for i, ident in enumerate(bn.ids):
+        if underground(bn.tags[i]):
+            stats["underground"] += 1
+            continue
         kind = bn.tags[i].get("building", "yes")
         w, d = NODE_FOOTPRINT.get(kind, NODE_FOOTPRINT_DEFAULT)
         x, y = bn.xy[i]

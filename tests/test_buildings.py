@@ -402,3 +402,23 @@ def test_unreadable_osm_files_are_data_errors(tmp_path):
         extract_features(bad, frame)
     with pytest.raises(DataError):
         extract_features(tmp_path / "missing.osm", frame)
+
+
+def test_underground_buildings_are_not_built():
+    """Buildings below the ground (a negative layer, location=underground) are left out:
+    Monaco's underground railway station (way 156780354, building=railway, layer=-2, 150 m
+    long under the streets of the Sainte-Dévote ravine) was extruded 12 m up from the lowest
+    ground under it, across the streets above, and the car drove onto its roof."""
+    from netgen.buildings import underground
+
+    assert underground({"building": "yes", "layer": "-1"})
+    assert underground({"building": "parking", "location": "underground"})
+    assert not underground({"building": "yes", "layer": "1"})
+    assert not underground({"building": "yes", "layer": "garbage"})
+    assert not underground({"building": "yes"})
+    path, frame, feats, chunks, res = world("monaco")
+    tagged = {b.id for b in feats.buildings if underground(b.tags)}
+    assert "way/156780354" in tagged                      # it is in the data
+    built = all_records(res)
+    assert not tagged & set(built) and len(built) > 1000
+    assert res[0].stats["underground"] >= len(tagged) >= 1            # counted in the report
