@@ -8,7 +8,8 @@ For each world folder given (built by ``cosim build``), from its tile meshes and
   heights shows as a steep face);
 * steps between roads: 5 m cells where faces of two different roads (not the two directions
   of one street) lie within 0.8 m of each other in plan and more than 0.15 / 0.3 / 0.6 m
-  apart in height;
+  apart in height; the same, apart, where one of the two is a junction's face (a junction
+  beside a lane, two junctions that overlap);
 * terrain above the road: the share of asphalt faces whose centre lies under the terrain by
   more than 5 / 15 / 30 / 100 cm (the terrain is levelled 8 cm under the road; above it,
   the car drives on the terrain).
@@ -73,6 +74,10 @@ def measure(path: str) -> dict:
                 C.append(P[:, :2])
                 Z.append(P[:, 2])
                 R += [_road_of(name)] * len(P)
+            elif name.startswith("junction/"):
+                C.append(P[:, :2])
+                Z.append(P[:, 2])
+                R += [name] * len(P)
             d = world.ground_z(P[:, 0], P[:, 1]) - P[:, 2]
             above.append(d[np.isfinite(d)])
     out = {"steep": {k: v for k, v in sorted(steep.items())}}
@@ -86,8 +91,12 @@ def measure(path: str) -> dict:
         pairs = cKDTree(C).query_pairs(0.8, output_type="ndarray")
         pairs = pairs[R[pairs[:, 0]] != R[pairs[:, 1]]]
         dz = np.abs(Z[pairs[:, 0]] - Z[pairs[:, 1]])
-        out["step_cells"] = {th: len({(int(x // 5), int(y // 5)) for x, y in C[pairs[dz > th, 0]]})
+        junc = np.char.startswith(R.astype(str), "junction/")
+        lanes = ~junc[pairs[:, 0]] & ~junc[pairs[:, 1]]
+        out["step_cells"] = {th: len({(int(x // 5), int(y // 5)) for x, y in C[pairs[lanes & (dz > th), 0]]})
                              for th in (0.15, 0.3, 0.6)}
+        out["junction_step_cells"] = {th: len({(int(x // 5), int(y // 5)) for x, y in C[pairs[~lanes & (dz > th), 0]]})
+                                      for th in (0.15, 0.3, 0.6)}
     if above:
         d = np.concatenate(above)
         out["terrain_above"] = {th: float(np.mean(d > th)) for th in (0.05, 0.15, 0.3, 1.0)}
@@ -111,6 +120,8 @@ def main(argv=None):
         if "step_cells" in r:
             print("   5 m cells with a step between two roads: " +
                   ", ".join(f"> {th} m: {n}" for th, n in r["step_cells"].items()))
+            print("   5 m cells with a step at a junction (junction beside a lane or another junction): " +
+                  ", ".join(f"> {th} m: {n}" for th, n in r["junction_step_cells"].items()))
         if "terrain_above" in r:
             print("   asphalt faces under the terrain by more than: " +
                   ", ".join(f"{th} m: {100 * v:.1f} %" for th, v in r["terrain_above"].items()))
