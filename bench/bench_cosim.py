@@ -159,6 +159,7 @@ def soak(world, minutes, seed, speed, telemetry=None):
         s = sim.finish()
         print("  summary:", s.line())
         print("  swaps (ms):", sim.streamer.swap_ms, " window builds (s):", sim.streamer.build_s,
+              " waited for late builds (s):", sim.streamer.waited_s,
               " errors:", sim.streamer.errors)
         print("  swap phases (ms):", sim.streamer.swap_phases_ms)
         f = np.array(frames)

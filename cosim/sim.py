@@ -77,6 +77,7 @@ class Summary:
     windows_built: int = 0
     network_swaps: int = 0
     swap_ms_max: float = 0.0
+    swap_wait_s: float = 0.0         # wall time a repeatable run waited for late window builds
     sumo_restarts: int = 0           # SUMO's worker process crashed and was started again
     frame_ms_median: float = 0.0
     frame_ms_p999: float = 0.0
@@ -91,6 +92,7 @@ class Summary:
                 f"collisions: ego {self.ego_collisions}, SUMO {self.sumo_collisions}; teleports {self.sumo_teleports}; "
                 f"pedestrians stopped for the ego {self.persons_held}; sensor-range violations {self.sensor_range_violations}; "
                 f"windows built {self.windows_built}, SUMO network swaps {self.network_swaps}"
+                + (f" (waited {self.swap_wait_s:.1f} s for late builds)" if self.swap_wait_s else "")
                 + (f"; SUMO restarted after a crash {self.sumo_restarts} time(s)" if self.sumo_restarts else "")
                 + f".{arr}")
 
@@ -725,6 +727,7 @@ class Simulation:
             s.windows_built = len(self.streamer.build_s)
             s.network_swaps = self.streamer.swaps
             s.swap_ms_max = max(self.streamer.swap_ms, default=0.0)
+            s.swap_wait_s = round(sum(self.streamer.waited_s), 2)
             s.notes = list(self.streamer.errors)
         s.notes = list(s.notes) + [n for n in self._restart_notes if n not in s.notes]
         return s

@@ -19,8 +19,9 @@ When it is ready:
 * the ego's route is planned again on the new network.
 
 A run is repeatable (``SimConfig.repeatable``, the default): the swap comes
-:data:`SWAP_DELAY_S` of simulated time after the build started, however long the build took
-in wall-clock time. A window ready earlier waits; one not ready by then is waited for (a long
+:data:`SWAP_DELAY_S` of simulated time after the build started, or once the car is within
+:data:`SWAP_EDGE_M` of the current window's edge if that is sooner, however long the build
+took in wall-clock time. A window ready earlier waits; one not ready by then is waited for (a long
 frame, logged). Without it the swap comes as soon as the build and SUMO are ready, so that
 the same seed can give another run on a busier or slower machine.
 
@@ -39,9 +40,11 @@ from .workers import start_worker, worker_connection
 
 log = logging.getLogger("cosim.streaming")
 BUILD_NICENESS = 5     # window builds run at this niceness (netconvert inherits it)
-#: simulated seconds from a window build's start to its swap in a repeatable run: the car
-#: drives at most 600 m in it at 30 m/s, and a window reaches a chunk (1 km) beyond its centre
-SWAP_DELAY_S = 20.0
+#: in a repeatable run, the swap comes this many simulated seconds after its window's build
+#: started, or earlier once the car is within SWAP_EDGE_M of the current window's edge (a
+#: window reaches a chunk, 1 km, beyond its centre chunk: at 30 m/s that is 20 s away)
+SWAP_DELAY_S = 60.0
+SWAP_EDGE_M = 400.0
 
 
 def _build_window(cfg_dict: dict, window: tuple, out: str, traffic, seed: int, duration: float, conn):
@@ -104,7 +107,7 @@ class WorldStreamer:
             return
         if self._ending:
             self._ending = [p for p in self._ending if p.poll() is None]
-        due = self._due()
+        due = self._due(x, y)
         if self.ready is not None:
             if due is False:
                 return                          # (SUMO goes on loading in its own process)
@@ -113,7 +116,7 @@ class WorldStreamer:
         ij = self.sim.world.frame.chunk_of(x, y)
         if self.proc is None and ij != self.center and ij not in self.built:
             self._start(ij)
-            due = self._due()
+            due = self._due(x, y)
         if self.proc is not None and (due is True or self.conn.poll() or self.proc.poll() is not None):
             t_wait = time.perf_counter()
             try:
@@ -145,12 +148,22 @@ class WorldStreamer:
             if due is not False:                # (due now: in this frame, whenever the build ended)
                 self._swap_when_ready(block=due is True)
 
-    def _due(self):
-        """In a repeatable run, whether the swap's time has come (True / False); None when
-        the run is not repeatable or nothing is being built."""
+    def _due(self, x: float, y: float):
+        """In a repeatable run, whether the swap's time has come (True / False; once come, it
+        stays so); None when the run is not repeatable or nothing is being built."""
         if not self.repeatable or self.due_t is None:
             return None
+        if self.sim.t < self.due_t - 1e-9 and self._edge_distance(x, y) <= SWAP_EDGE_M:
+            self.due_t = self.sim.t
         return self.sim.t >= self.due_t - 1e-9
+
+    def _edge_distance(self, x: float, y: float) -> float:
+        """How far (m) (x, y) is inside the current window's square of chunks."""
+        rings = int((self.base_cfg or {}).get("chunks", 1))
+        frame, (ci, cj) = self.sim.world.frame, self.center
+        x0, y0, _, _ = frame.chunk_bounds(ci - rings, cj - rings)
+        _, _, x1, y1 = frame.chunk_bounds(ci + rings, cj + rings)
+        return min(x - x0, x1 - x, y - y0, y1 - y)
 
     def _swap_when_ready(self, block: bool = False):
         """With SUMO started ahead on the new network: once it has loaded, it plans the car's
