@@ -546,7 +546,7 @@ def carriageway_parts(net) -> list:
 
 def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, junctions=None,
                      max_grade: float = JUNCTION_MAX_GRADE, grade_weight: float = 40.0, tie_weight: float = 3.0,
-                     ridge: float = 0.5) -> int:
+                     ridge: float = 0.5, planes_out: dict | None = None) -> int:
     """Make the ends of the edges that meet at a node lie on one plane (``rz`` in place).
 
     Each edge's profile is sampled from the ground, so the roads at a junction on a hillside
@@ -645,6 +645,11 @@ def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, juncti
     c = spsolve((A.T @ A).tocsc(), A.T @ np.concatenate(rhs))
     dz_end = c[node] - r
     rz += (1.0 - u) * dz_end[:n][rg] + u * dz_end[n:][rg]
+    if planes_out is not None:
+        # node -> (x0, y0, z0, gx, gy): its plane z0 + gx (x - x0) + gy (y - y0), on which its
+        # edges' ends now lie
+        for j, k in ids.items():
+            planes_out[j] = (float(mx[k]), float(my[k]), float(mz[k] + c[k]), float(gx[k]), float(gy[k]))
     return int(np.sum(np.abs(dz_end) > 0.01))
 
 
@@ -815,7 +820,9 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     jrings = {j.id: r for j in net.junctions.values()
               if j.type != "internal" and j.id not in under and j.shape is not None and len(j.shape) >= 3
               for r in (_open_ring(j.shape[:, :2]),) if r is not None}
-    ends_moved = _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=edge_hw[ref_e], junctions=jrings)
+    planes: dict = {}
+    ends_moved = _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=edge_hw[ref_e], junctions=jrings,
+                                  planes_out=planes)
 
     # 2. lane centrelines, resampled, with heights from their edge's profile
     LP, lg = _concat([l.shape for l in lanes])
@@ -877,7 +884,15 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
         d2 = ((xy[pt] - EP[nb]) ** 2).sum(axis=1)
         w = 1.0 / (d2 + 1e-6) ** 2
         wsum = np.bincount(pt, w, minlength=len(xy))
-        z = np.bincount(pt, w * EZ[nb], minlength=len(xy)) / np.maximum(wsum, 1e-300)
+        # on the junction's plane, with the ends' heights off it blended (a blend of heights on
+        # a tilted plane is not the plane: two junctions on one plane met at steps of 0.3 m)
+        PL = np.array([planes.get(j, (np.nan,) * 5) for j in junction_ids] + [(np.nan,) * 5])[of]
+        on = np.isfinite(PL[:, 0])
+        pe = PL[pt]
+        ez = EZ[nb] - np.where(on[pt], pe[:, 2] + pe[:, 3] * (EP[nb, 0] - pe[:, 0])
+                               + pe[:, 4] * (EP[nb, 1] - pe[:, 1]), 0.0)
+        z = np.bincount(pt, w * ez, minlength=len(xy)) / np.maximum(wsum, 1e-300)
+        z += np.where(on, PL[:, 2] + PL[:, 3] * (xy[:, 0] - PL[:, 0]) + PL[:, 4] * (xy[:, 1] - PL[:, 1]), 0.0)
         none = wsum == 0.0
         if none.any():
             z[none] = zfun(xy[none])
