@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import dataclasses
 import inspect
 import logging
 import math
@@ -169,8 +170,7 @@ def _state(t) -> dict:
         except Exception:
             continue
         if k == "stats":
-            v = type(v)(**{f: getattr(v, f) for f in ("steps", "vehicles", "persons", "teleports",
-                                                     "collisions", "max_vehicles", "max_persons")})
+            v = dataclasses.replace(v)      # a copy, every field (persons_held, swap_dropped too)
         out[k] = v
     return out
 

@@ -236,6 +236,31 @@ def test_the_same_seed_repeats_the_run_across_a_window_swap(motorway_world):
     assert a.shape == b.shape and np.array_equal(a, b)
 
 
+def test_persons_carried_onto_a_walk_ending_in_a_junction_are_dropped(tmp_path_factory):
+    """Helsinki, normal traffic, seed 1 (a repeatable run): at the window swap (t = 261 s) two
+    carried pedestrians are matched onto a crossing, one with a walk ending on a walking area
+    ('30471533', ':cluster_409705483_409705484_w0'); SUMO 1.28 segfaulted 2.3 s later, when
+    that walk ended (the loop restarted it, losing the traffic). Such persons are dropped at
+    the swap and SUMO runs on. (Where the run no longer meets that case, the test says so: it
+    needs a new case, not a pass.)"""
+    out = tmp_path_factory.mktemp("sim") / "helsinki"
+    build_world(WorldConfig(preset="helsinki", chunks=1, out=str(out), cache_dir=str(out.parent / "cache")))
+    cfg = SimConfig(world_dir=str(out), traffic="normal", seed=1, speed_mps=12.0, duration_s=300.0,
+                    parallel_sumo=True)
+    sim = Simulation(cfg).setup()
+    sim.physics.load_budget_ms = 1e9
+    try:
+        while sim.t < 268.0:
+            sim.step()
+        swaps, dropped = sim.streamer.swaps, sim.traffic.stats.swap_dropped
+        summary = sim.finish()
+    finally:
+        sim.teardown()
+    assert summary.sumo_restarts == 0, summary.notes
+    assert swaps == 1, "the run no longer swaps windows before t = 268 s"
+    assert dropped >= 2, "the swap no longer meets stranded persons"
+
+
 def test_sumo_worker_crash_is_survived(motorway_world):
     """libsumo can segfault; in its worker process that ends only SUMO, which the loop starts
     again on the same network with the ego where it is (the run's summary says so)."""
