@@ -136,7 +136,9 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
     off_road = 0
     off_events, collisions, n_coll = [], [], 0
     swaps, path_changes = [], []
-    last_gen, last_path = getattr(sim.traffic, "_generation", 0), sim.path
+    # (swaps counted by the loop's streamer: reading the SUMO worker's state between steps
+    # would wait for its step in flight, and a SUMO crash there would escape the loop's restart)
+    last_gen, last_path = sim.streamer.swaps if sim.streamer is not None else 0, sim.path
     reroutes = 0
     blocked_since = None
     settled = False
@@ -146,7 +148,7 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
         for _ in range(n):
             ego = sim.step()
             ap = sim.driver
-            gen = getattr(sim.traffic, "_generation", 0)
+            gen = sim.streamer.swaps if sim.streamer is not None else 0
             if gen != last_gen:
                 swaps.append(round(ego.t, 1))
                 last_gen = gen
