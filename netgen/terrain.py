@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 ROAD_SINK_M = 0.08       # terrain under a road sits this far below the road surface
 INNER_CELLS = 0.75       # nodes this many cells beyond a road's edge are levelled too (flat bilinear surface)
 STACK_NEIGHBOURS = 16    # road points looked at per node for a road further down
-STACK_STEP_M = 0.1       # ... lower than the nearest road point by more than this
+STACK_STEP_M = 0.5       # ... lower than the nearest road point by more than this
 STACK_GRADE = 0.25       # ... plus this grade times their distance (steeper than any street)
 
 
