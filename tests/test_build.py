@@ -446,23 +446,11 @@ def _check_junctions_do_not_fold(out: Path, w: dict):
     at a junction still lay on their own patches of ground (90th percentile 0.48, 99th 2.05,
     5.6 % of the area steeper than 0.7), until each junction's road ends were put on one
     plane (0.11, 0.32, 0.2 %)."""
-    import trimesh
-
-    from cosim.world import World
-
-    world = World(out)
     grade, area = [], []
-    for (i, j), c in world.chunks.items():
-        for tile in c.get("tiles", {}).values():
-            if "asphalt" not in tile:
-                continue
-            scene = trimesh.load(c["_base"] / tile["asphalt"], group_material=False, split_groups=True,
-                                 process=False, force="scene")
-            for name, g in scene.geometry.items():
-                if name.startswith("junction/"):
-                    n = g.face_normals
-                    grade.append(np.hypot(n[:, 0], n[:, 1]) / np.maximum(np.abs(n[:, 2]), 1e-9))
-                    area.append(g.area_faces)
+    for _name, g in _junction_meshes(out):
+        n = g.face_normals
+        grade.append(np.hypot(n[:, 0], n[:, 1]) / np.maximum(np.abs(n[:, 2]), 1e-9))
+        area.append(g.area_faces)
     grade, area = np.concatenate(grade), np.concatenate(area)
     assert area.sum() > 50000                   # m², Monaco's junctions
     o = np.argsort(grade)
@@ -472,26 +460,31 @@ def _check_junctions_do_not_fold(out: Path, w: dict):
     assert area[grade > 0.7].sum() < 0.01 * area.sum()
 
 
-def _junction_steps(out: Path) -> np.ndarray:
-    """Height differences between faces of two different junctions whose centres lie within
-    0.8 m of each other in plan (where two junctions meet or overlap)."""
+def _junction_meshes(out: Path):
+    """(name, mesh) of every junction surface in the world's asphalt tiles."""
     import trimesh
-    from scipy.spatial import cKDTree
 
     from cosim.world import World
 
     world = World(out)
-    C, Z, J = [], [], []
     for c in world.chunks.values():
         for tile in c.get("tiles", {}).values():
             if "asphalt" not in tile:
                 continue
             scene = trimesh.load(c["_base"] / tile["asphalt"], group_material=False, split_groups=True,
                                  process=False, force="scene")
-            for name, g in scene.geometry.items():
-                if name.startswith("junction/"):
-                    P = g.triangles_center
-                    C.append(P[:, :2]), Z.append(P[:, 2]), J.extend([name] * len(P))
+            yield from ((name, g) for name, g in scene.geometry.items() if name.startswith("junction/"))
+
+
+def _junction_steps(out: Path) -> np.ndarray:
+    """Height differences between faces of two different junctions whose centres lie within
+    0.8 m of each other in plan (where two junctions meet or overlap)."""
+    from scipy.spatial import cKDTree
+
+    C, Z, J = [], [], []
+    for name, g in _junction_meshes(out):
+        P = g.triangles_center
+        C.append(P[:, :2]), Z.append(P[:, 2]), J.extend([name] * len(P))
     C, Z, J = np.vstack(C), np.concatenate(Z), np.array(J)
     pairs = cKDTree(C).query_pairs(0.8, output_type="ndarray")
     pairs = pairs[J[pairs[:, 0]] != J[pairs[:, 1]]]
