@@ -192,9 +192,14 @@ def _link_deviation(sim, lane: str, link, lead_m: float = 10.0) -> float:
     b = np.array(sim.lane.getShape(link[0]), dtype=float)[:, :2]
     v = np.array(sim.lane.getShape(link[4]), dtype=float)[:, :2] if link[4] else np.zeros((0, 2))
     key = (lane, link[0], link[4], tuple(a[-1]), tuple(b[0]), len(v), tuple(v[len(v) // 2]) if len(v) else ())
+    return _cached_deviation(key, lambda: np.vstack([_tail(a, lead_m), v, _tail(b[::-1], lead_m)[::-1]]))
+
+
+def _cached_deviation(key, polyline) -> float:
+    """:func:`turn_deviation` of ``polyline()`` at the car's turning radius, cached by ``key``."""
     out = _TURN_CACHE.get(key)
     if out is None:
-        out = turn_deviation(np.vstack([_tail(a, lead_m), v, _tail(b[::-1], lead_m)[::-1]]), car_turn_radius())
+        out = turn_deviation(polyline(), car_turn_radius())
         if len(_TURN_CACHE) > 100_000:
             _TURN_CACHE.clear()
         _TURN_CACHE[key] = out
@@ -253,14 +258,7 @@ def _chain_deviation(sim, lane: str, link1, link2, lead_m: float = 10.0) -> floa
     a, mid, b = shape(lane), shape(link1[0]), shape(link2[0])
     v1, v2 = via_shape(link1[4]), via_shape(link2[4])
     key = ("chain", lane, link1[0], link1[4], link2[0], link2[4], tuple(a[-1]), tuple(mid[0]), tuple(b[0]))
-    out = _TURN_CACHE.get(key)
-    if out is None:
-        out = turn_deviation(np.vstack([_tail(a, lead_m), v1, mid, v2, _tail(b[::-1], lead_m)[::-1]]),
-                             car_turn_radius())
-        if len(_TURN_CACHE) > 100_000:
-            _TURN_CACHE.clear()
-        _TURN_CACHE[key] = out
-    return out
+    return _cached_deviation(key, lambda: np.vstack([_tail(a, lead_m), v1, mid, v2, _tail(b[::-1], lead_m)[::-1]]))
 
 
 def _chain_unturnable(sim, edge: str, short: str, nxt: str) -> bool:

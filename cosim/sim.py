@@ -289,11 +289,6 @@ class Simulation:
         self.path = plan["path"]
         self._path_idx = 0
 
-    def _random_route(self, edge: str, min_len: float = 800.0) -> list[str]:
-        route, state = self.traffic.random_route(edge, self._rng.getstate(), min_len)
-        self._rng.setstate(state)
-        return route
-
     # ------------------------------------------------------------------------------------
     def ego_state(self) -> EgoState:
         st = self.vehicle.state()

@@ -80,7 +80,7 @@ class WorldStreamer:
         self.conn = None
         self.job_window = None
         self.job_started = 0.0
-        self.repeatable = bool(getattr(sim.cfg, "repeatable", True))
+        self.repeatable = bool(sim.cfg.repeatable)
         self.due_t = None                 # sim time of the swap in a repeatable run
         self.waited_s: list = []          # wall time waited for a late build at the swap's due time
         self.swaps = 0
@@ -123,9 +123,8 @@ class WorldStreamer:
                 status, out, routes = self.conn.recv()      # (at the due time: waits for the build)
             except (EOFError, OSError):
                 status, out, routes = "error", f"the build process ended with exit code {self.proc.poll()}", []
-            if due is True and time.perf_counter() - t_wait > 0.05:
-                self.waited_s.append(round(time.perf_counter() - t_wait, 2))
-                log.info("waited %.1f s for the window build at its swap time (a repeatable run)", self.waited_s[-1])
+            if due is True:
+                self._note_wait(t_wait, "the window build")
             self._ending.append(self.proc)     # it exits by itself: reaped later, not waited for here
             self.proc = None
             self.conn.close()
@@ -157,6 +156,13 @@ class WorldStreamer:
             self.due_t = self.sim.t
         return self.sim.t >= self.due_t - 1e-9
 
+    def _note_wait(self, t0: float, what: str) -> None:
+        """Record a wait (since ``t0``, perf_counter) of a repeatable run's swap for ``what``."""
+        waited = time.perf_counter() - t0
+        if waited > 0.05:
+            self.waited_s.append(round(waited, 2))
+            log.info("waited %.1f s for %s at the swap's time (a repeatable run)", waited, what)
+
     def _edge_distance(self, x: float, y: float) -> float:
         """How far (m) (x, y) is inside the current window's square of chunks."""
         rings = int((self.base_cfg or {}).get("chunks", 1))
@@ -177,8 +183,8 @@ class WorldStreamer:
             t_wait = time.perf_counter()
             if not traffic.prepared_ready(block=block):
                 return
-            if block and time.perf_counter() - t_wait > 0.05:
-                self.waited_s.append(round(time.perf_counter() - t_wait, 2))
+            if block:
+                self._note_wait(t_wait, "SUMO on the next network")
             if not self.plan_asked:
                 args = sim.replan_args()
                 if args is None:

@@ -1293,9 +1293,9 @@ class SumoTraffic(Component):
 
     def _drop_stranded_persons(self, mapping: dict) -> None:
         """After the step that applied the carried persons' moveToXY: a person SUMO mapped onto
-        a crossing or walking area off its route gets a walk of internal edges only, or one
-        that ends on a walking area (SUMO replaces the walk with the edges around the lane it
-        matched), and SUMO 1.28 crashes (a segfault) when that walk ends, some steps later
+        a crossing or walking area off its route gets a walk that ends on a junction's edge
+        (of internal edges only, or ending on a walking area: SUMO replaces the walk with the
+        edges around the lane it matched), and SUMO 1.28 crashes (a segfault) when that walk ends, some steps later
         (Helsinki: 2.3 s after a swap, a person on a crossing with the walk ('30471533',
         ':cluster_409705483_409705484_w0')). Such a person is removed at once,
         dropped from ``mapping`` and counted in ``stats.swap_dropped``: one pedestrian gone beats
@@ -1309,7 +1309,7 @@ class SumoTraffic(Component):
                 continue
             try:
                 edges = s.person.getStage(nid).edges
-                if not edges or not (all(e.startswith(":") for e in edges) or edges[-1].startswith(":")):
+                if not edges or not edges[-1].startswith(":"):     # (ends on a junction's edge)
                     continue
                 road = s.person.getRoadID(nid)
                 s.person.remove(nid)
@@ -1317,8 +1317,8 @@ class SumoTraffic(Component):
                 continue
             del mapping[old]
             self.stats.swap_dropped += 1
-            log.info("swap: %s dropped: SUMO matched it onto %s with a walk of internal edges only, "
-                     "or ending on one: %s", old, road, tuple(edges))
+            log.info("swap: %s dropped: SUMO matched it onto %s with a walk ending on a junction's edge: %s",
+                     old, road, tuple(edges))
 
     def _set_carried_speeds(self, kept: list, mapping: dict) -> None:
         """After the swap's last step: the carried vehicles' speeds as captured (the step
