@@ -10,6 +10,8 @@ For each world folder given (built by ``cosim build``), from its tile meshes and
   of one street) lie within 0.8 m of each other in plan and more than 0.15 / 0.3 / 0.6 m
   apart in height; the same, apart, where one of the two is a junction's face (a junction
   beside a lane, two junctions that overlap);
+* sidewalk over a lane: 5 m cells where a sidewalk's face lies within 1 m in plan of a vehicle
+  lane's face and 0.3-4 m above it (a slab the car's body drives into);
 * terrain above the road: the share of asphalt faces whose centre lies under the terrain by
   more than 5 / 15 / 30 / 100 cm (the terrain is levelled 8 cm under the road; above it,
   the car drives on the terrain).
@@ -54,6 +56,7 @@ def measure(path: str) -> dict:
     steep = defaultdict(lambda: [0.0, 0.0, 0.0])
     jgrade, jarea = [], []
     C, Z, R = [], [], []
+    SW, LN = [], []
     above = []
     for kind in ("asphalt", "sidewalk"):
         for name, g in _groups(world, kind):
@@ -65,12 +68,15 @@ def measure(path: str) -> dict:
             steep[el][1] += float(area[grade > 0.4].sum())
             steep[el][2] += float(area[grade > 0.7].sum())
             if kind != "asphalt":
+                if name.startswith("lane/"):
+                    SW.append(g.triangles_center)
                 continue
             P = g.triangles_center
             if name.startswith("junction/"):
                 jgrade.append(grade)
                 jarea.append(area)
             if name.startswith("lane/"):
+                LN.append(P)
                 C.append(P[:, :2])
                 Z.append(P[:, 2])
                 R += [_road_of(name)] * len(P)
@@ -97,6 +103,11 @@ def measure(path: str) -> dict:
                              for th in (0.15, 0.3, 0.6)}
         out["junction_step_cells"] = {th: len({(int(x // 5), int(y // 5)) for x, y in C[pairs[~lanes & (dz > th), 0]]})
                                       for th in (0.15, 0.3, 0.6)}
+    if SW and LN:
+        S, L = np.vstack(SW), np.vstack(LN)
+        near = cKDTree(S[:, :2]).query_ball_point(L[:, :2], 1.0)
+        hits = [(x, y) for (x, y, z), nb in zip(L, near) if nb and np.any((S[nb, 2] - z > 0.3) & (S[nb, 2] - z < 4.0))]
+        out["sidewalk_over_lane_cells"] = len({(int(x // 5), int(y // 5)) for x, y in hits})
     if above:
         d = np.concatenate(above)
         out["terrain_above"] = {th: float(np.mean(d > th)) for th in (0.05, 0.15, 0.3, 1.0)}
@@ -122,14 +133,17 @@ def main(argv=None):
                   ", ".join(f"> {th} m: {n}" for th, n in r["step_cells"].items()))
             print("   5 m cells with a step at a junction (junction beside a lane or another junction): " +
                   ", ".join(f"> {th} m: {n}" for th, n in r["junction_step_cells"].items()))
+        if "sidewalk_over_lane_cells" in r:
+            print(f"   5 m cells with a sidewalk 0.3-4 m above a vehicle lane: {r['sidewalk_over_lane_cells']}")
         if "terrain_above" in r:
             print("   asphalt faces under the terrain by more than: " +
                   ", ".join(f"{th} m: {100 * v:.1f} %" for th, v in r["terrain_above"].items()))
     if len(rows) > 1:
-        print("\nside by side: world | steep > 70 % (m2) | step cells > 0.6 m | terrain above by > 0.3 m")
+        print("\nside by side: world | steep > 70 % (m2) | step cells > 0.6 m | sidewalk-over-lane cells | "
+              "terrain above by > 0.3 m")
         for w, r in rows:
             s70 = sum(v[2] for v in r["steep"].values())
-            print(f"  {w} | {s70:.0f} | {r.get('step_cells', {}).get(0.6)} | "
+            print(f"  {w} | {s70:.0f} | {r.get('step_cells', {}).get(0.6)} | {r.get('sidewalk_over_lane_cells')} | "
                   f"{100 * r.get('terrain_above', {}).get(0.3, float('nan')):.1f} %")
 
 

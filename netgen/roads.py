@@ -28,6 +28,9 @@ A vehicle lane through a junction whose polygon misses part of it (netconvert's 
 junction on odd geometry can) gets a strip of its own, element ``junction_lane``
 (:func:`junction_gaps`).
 
+Sidewalk lanes are left out where they lie on another road's vehicle lane or junction
+(:func:`_sidewalks_off_other_roads`).
+
 Mesh classes: ``asphalt`` (vehicle lanes, junctions), ``sidewalk`` (pedestrian-only
 lanes and walking areas, 2 cm higher), ``rail`` (train-only tracks) and ``marking`` (lane lines and zebra stripes, visual
 only, 1.5 cm above the surface). Each piece keeps its SUMO id and the OSM way ids.
@@ -54,6 +57,9 @@ _LANE_INDEX = attrgetter("index")
 JUNCTION_SUPPORT_STEP = 4.0
 #: the steepest grade a junction's plane may have (the edges that meet it take up the rest)
 JUNCTION_MAX_GRADE = 0.07
+#: how far a sidewalk may reach into a vehicle lane of another road before that piece of it is
+#: left out (m)
+SIDEWALK_INTRUSION_M = 0.3
 
 
 @dataclass
@@ -837,13 +843,18 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     _share_opposite_profiles(edges, lane_edge, ref_e, RP, rg, rz, C, cg, cz)
     width = np.array([l.width for l in lanes])
     hw = width[cg] / 2.0
-    # support points for levelling and for junction heights: centrelines and lane corners
     nrm = _normals_many(C, cg) * hw[:, None]
-    corners = np.vstack([np.column_stack([C + nrm, cz]), np.column_stack([C - nrm, cz])])
-    sup = [np.column_stack([C, cz]), corners]
-    sup_hw = [hw, np.zeros(len(corners))]
+    # the pieces of sidewalks that lie on another road's carriageway are left out, and do not
+    # hold the ground up either
+    side = np.array([l.pedestrian_only for l in lanes])
+    seg_keep, pt_keep = _sidewalks_off_other_roads(C, cg, nrm, side, lanes, lane_edge, edges, jrings)
+    # support points for levelling and for junction heights: centrelines and lane corners
+    Ck, czk, hwk, nk = C[pt_keep], cz[pt_keep], hw[pt_keep], nrm[pt_keep]
+    corners = np.vstack([np.column_stack([Ck + nk, czk]), np.column_stack([Ck - nk, czk])])
+    sup = [np.column_stack([Ck, czk]), corners]
+    sup_hw = [hwk, np.zeros(len(corners))]
     tree = cKDTree(np.vstack(sup)[:, :2])
-    supz = np.concatenate([cz, cz, cz])
+    supz = np.concatenate([czk, czk, czk])
 
     def zfun(xy):
         _, i = tree.query(xy, k=1, workers=-1)     # threads: a core may be idle
@@ -995,7 +1006,6 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
         on_support(geo.support_pts, geo.support_hw)
 
     # 4. lanes as strips
-    side = np.array([l.pedestrian_only for l in lanes])
     rail = np.array([bool(l.allowed) and l.allowed <= RAIL_CLASSES for l in lanes])
     drive = np.array([l.drivable for l in lanes])
     ids = [lanes[k].id for k in range(len(lanes))]
@@ -1012,7 +1022,9 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
         remap = -np.ones(len(lanes), dtype=np.int64)
         remap[sel] = np.arange(len(sel))
         pm = mask[cg]
-        v, f, fg = _strips(C[pm], remap[cg[pm]], cz[pm], hw[pm], lift)
+        at = np.nonzero(pm)[0]
+        v, f, fg = _strips(C[pm], remap[cg[pm]], cz[pm], hw[pm], lift,
+                           seg_mask=seg_keep[at[:-1]] if kind == "sidewalk" else None)
         parts[kind].append(_part(kind, v, f, fg, len(sel), [ids[k] for k in sel], ["lane"] * len(sel),
                                  [osm[k] for k in sel], cent[sel]))
 
@@ -1057,6 +1069,61 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
                  "junction_ends_moved": ends_moved,
                  "faces": int(sum(len(p.faces) for ps in geo.parts.values() for p in ps))}
     return geo
+
+
+def _sidewalks_off_other_roads(C, cg, nrm, side, lanes, lane_edge, edges=None, jrings=None):
+    """Which pieces of the sidewalks to mesh: (per segment i -> i+1 of the resampled lane
+    centrelines `C`, per point) masks, False for a sidewalk's segment that reaches more than
+    :data:`SIDEWALK_INTRUSION_M` into a vehicle lane of another edge, or into a junction
+    (`jrings`: id -> ring) other than the two its edge joins, and for its points whose
+    segments are all left out.
+
+    netconvert guesses a sidewalk on each side of a road from its permissions, also where the
+    road's two directions are mapped as two ways a few metres apart: the sidewalk between them
+    then lies on the other carriageway (Monaco, Helsinki: a few thousand m2 each). On a
+    hillside the two carriageways are at different heights, and such a sidewalk stood 1.4 m
+    above the other one's lane, a wall that a car drove into."""
+    n = len(C)
+    seg_keep = np.ones(max(n - 1, 0), dtype=bool)
+    pt_keep = np.ones(n, dtype=bool)
+    veh = np.nonzero(np.array([ln.drivable for ln in lanes]))[0] if len(lanes) else np.zeros(0, np.int64)
+    if n < 2 or not side.any() or not len(veh):
+        return seg_keep, pt_keep
+    seg = np.nonzero((cg[1:] == cg[:-1]) & side[cg[:-1]])[0]
+    if not len(seg):
+        return seg_keep, pt_keep
+    quads = shapely.polygons(np.stack([C[seg] + nrm[seg], C[seg + 1] + nrm[seg + 1],
+                                       C[seg + 1] - nrm[seg + 1], C[seg] - nrm[seg]], axis=1))
+    keep_w = np.array([lanes[k].width / 2.0 - SIDEWALK_INTRUSION_M for k in veh])
+    ok = keep_w > 0.05
+    veh, keep_w = veh[ok], keep_w[ok]
+    P, g = _concat([lanes[k].shape[:, :2] for k in veh])
+    cores = shapely.buffer(shapely.linestrings(P, indices=g), keep_w, cap_style="flat", join_style="mitre",
+                           mitre_limit=2.0)
+    qi, vi = shapely.STRtree(cores).query(quads, predicate="intersects")
+    other = lane_edge[cg[seg[qi]]] != lane_edge[veh[vi]]
+    seg_keep[seg[qi[other]]] = False
+    if jrings and edges is not None:
+        jids = list(jrings)
+        jcores = shapely.buffer(shapely.make_valid([shapely.Polygon(jrings[j]) for j in jids]),
+                                -SIDEWALK_INTRUSION_M)
+        qi, ji = shapely.STRtree(jcores).query(quads, predicate="intersects")
+        if len(qi):
+            jname = np.array(jids, dtype=object)[ji]
+            own = np.array([jn in (edges[ei].from_node, edges[ei].to_node)
+                            for jn, ei in zip(jname, lane_edge[cg[seg[qi]]])], dtype=bool)
+            seg_keep[seg[qi[~own]]] = False
+    # a point goes with its segments: kept if one of them is
+    prev_ok = np.zeros(n, dtype=bool)
+    next_ok = np.zeros(n, dtype=bool)
+    same = cg[1:] == cg[:-1]
+    next_ok[:-1] = same & seg_keep
+    prev_ok[1:] = same & seg_keep
+    alone = np.ones(n, dtype=bool)          # (a lane of one point has no segment to lose)
+    alone[:-1] &= ~same
+    alone[1:] &= ~same
+    pt_keep = next_ok | prev_ok | alone | ~side[cg]
+    return seg_keep, pt_keep
 
 
 def _markings(parts, edges, lanes, lane_edge, drive, C, cg, cz, cs, hw):

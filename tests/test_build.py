@@ -342,6 +342,7 @@ def test_monaco_with_srtm(tmp_path):
     _check_terrain_against_dem(out, w, dem, np.random.default_rng(1))
     assert _check_buildings_on_ground(out, w) > 100
     _check_no_step_between_directions(out, w)
+    _check_sidewalks_clear_other_roads(out, w)
     _check_crossings_on_the_road(out, w)
     _check_lanes_meet_junctions(out, w)
     _check_junctions_do_not_fold(out, w)
@@ -503,6 +504,53 @@ def _check_junctions_meet_each_other(out: Path, w: dict):
     # 3.9 %, 0.55 m: the rest lie between junctions of different planes)
     assert (dz > 0.15).mean() < 0.22 and (dz > 0.3).mean() < 0.06 and dz.max() < 0.7, \
         ((dz > 0.15).mean(), (dz > 0.3).mean(), dz.max())
+
+
+def _check_sidewalks_clear_other_roads(out: Path, w: dict) -> int:
+    """No sidewalk lies on another road's vehicle lane or junction, more than 0.3 m in from
+    its edge.
+    netconvert guesses a sidewalk on each side of a road, also between a road's two
+    directions mapped as two ways a few metres apart, where it lies on the other carriageway;
+    on a hillside it stood up to 1.9 m above that lane (the car drove into it). Returns how
+    many sidewalk faces were checked."""
+    import shapely
+    import trimesh
+
+    from cosim.world import World
+
+    world = World(out)
+    net = read_net(out / w["net_file"])
+    tunnels = set(w["tunnels"])         # (not meshed: a sidewalk may pass over one)
+    lanes = [(e.id, ln) for e in net.edges.values() if e.function == "normal" and e.id not in tunnels
+             for ln in e.lanes if ln.drivable and len(ln.shape) >= 2 and ln.width > 0.7]
+    cores = list(shapely.buffer([shapely.LineString(ln.shape[:, :2]) for _, ln in lanes],
+                                [ln.width / 2.0 - 0.31 for _, ln in lanes], cap_style="flat"))
+    # junctions: a sidewalk may lie on the two its edge joins (not counted: all others)
+    meshed = {n for e in net.edges.values() if e.function == "normal" and e.id not in tunnels
+              for n in (e.from_node, e.to_node)}
+    js = [j for j in net.junctions.values() if j.id in meshed and j.shape is not None and len(j.shape) >= 3]
+    cores += list(shapely.buffer(shapely.make_valid([shapely.Polygon(j.shape[:, :2]) for j in js]), -0.31))
+    owner = [("lane", e, ()) for e, _ in lanes] + [("junction", j.id, ()) for j in js]
+    ends = {e.id: (e.from_node, e.to_node) for e in net.edges.values()}
+    tree = shapely.STRtree(cores)
+    n, on = 0, []
+    for c in world.chunks.values():
+        for tile in c.get("tiles", {}).values():
+            if "sidewalk" not in tile:
+                continue
+            scene = trimesh.load(c["_base"] / tile["sidewalk"], group_material=False, split_groups=True,
+                                 process=False, force="scene")
+            for name, g in scene.geometry.items():
+                if not name.startswith("lane/"):
+                    continue
+                edge = name.split("/", 1)[1].rsplit("_", 1)[0]
+                P = g.triangles_center
+                n += len(P)
+                pi, li = tree.query(shapely.points(P[:, :2]), predicate="within")
+                on += [(name, owner[k][1]) for k in li if owner[k][1] != edge and owner[k][1] not in ends[edge]]
+    assert n > 1000
+    assert not on, (len(on), sorted(set(on))[:5])
+    return n
 
 
 def _check_lanes_meet_junctions(out: Path, w: dict):
