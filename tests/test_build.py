@@ -807,7 +807,7 @@ def test_killed_build_leaves_nothing_trusted(tmp_path):
 
 # ---------------------------------------------------------------------------------------
 # the build's shortcuts give what the plain code gives (outputs stay byte-identical)
-def _monaco_inputs():
+def _monaco_inputs(spacing: float = 5.0):
     from netgen.dem import open_dem
     from netgen.frame import WorldFrame
     from netgen.terrain import sample_grid
@@ -817,7 +817,7 @@ def _monaco_inputs():
     chunks = frame.ring(1)
     extent = frame.extent(chunks)
     bbox = frame.bbox_lonlat(extent, margin_m=50.0)
-    grid = sample_grid(frame, open_dem([str(dem)]), extent, 5.0)
+    grid = sample_grid(frame, open_dem([str(dem)]), extent, spacing)
     return osm, frame, chunks, bbox, grid
 
 
@@ -852,10 +852,10 @@ def test_levelling_looks_up_only_nodes_near_roads_with_the_same_result(tmp_path)
                                 cache_dir=str(tmp_path / "c")))
     net = read_net(tmp_path / "w" / w["net_file"], internal=False)
     sup = {}
-    build_roads(net, grid.sample, 5.0, on_support=lambda p, h: sup.update(p=p, h=h))
+    build_roads(net, grid.sample, 5.0, on_support=lambda p, h, c: sup.update(p=p, h=h, c=c))
     pts, hw = sup["p"], sup["h"]
     g = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, grid.z.copy())
-    figures = level_under_roads(g, pts, hw)
+    figures = level_under_roads(g, pts, hw, clear=False)
     # every node, as before the shortcut (node positions as the levelling computes them)
     sp = grid.spacing
     ny, nx = grid.z.shape
@@ -885,6 +885,45 @@ def test_levelling_looks_up_only_nodes_near_roads_with_the_same_result(tmp_path)
     assert figures["levelled_nodes"] == int(np.sum(wgt >= 1.0)) > 1000
     assert np.isin(hi, terrain._nodes_near(grid, pts, reach)).all()
     assert len(terrain._nodes_near(grid, pts, reach)) < z.size          # a shortcut at all
+
+
+def test_no_road_point_lies_under_the_levelled_terrain(tmp_path):
+    """After levelling, the terrain (bilinear, and the triangles of Bullet's heightfield) lies
+    at least ROAD_SINK_M under every point where cars drive (lanes, junctions; Monaco's SRTM
+    terrain and network, on a 10 m grid, where the nodes' nearest-road heights alone left the
+    surface above some of them), and the pass lowers nodes only (and none for points beyond the
+    grid, where its border stands for the ground)."""
+    from netgen.roads import build_roads
+    from netgen.terrain import ROAD_SINK_M, TerrainGrid, clear_road_points, level_under_roads
+
+    osm, frame, chunks, bbox, grid = _monaco_inputs(spacing=10.0)
+    w = build_world(WorldConfig(osm=str(osm), dem=[str(shared_file("dem/N43E007.hgt"))],
+                                center=(43.7384, 7.4246), chunks=1, out=str(tmp_path / "w"),
+                                cache_dir=str(tmp_path / "c")))
+    net = read_net(tmp_path / "w" / w["net_file"], internal=False)
+    sup = {}
+    build_roads(net, grid.sample, 2.5, on_support=lambda p, h, c: sup.update(p=p, h=h, c=c))
+    pts, hw, car = sup["p"], sup["h"], sup["c"]
+    assert 0.3 < car.mean() < 0.9          # (sidewalks and walking areas are not cleared)
+    g = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, grid.z.copy())
+    level_under_roads(g, pts, hw, clear=False)
+    P = pts[car]
+    P = P[(P[:, 0] >= g.xmin) & (P[:, 0] <= g.xmax) & (P[:, 1] >= g.ymin) & (P[:, 1] <= g.ymax)]
+    lim = P[:, 2] - ROAD_SINK_M
+
+    def above(t):
+        return np.maximum(t.sample(P[:, 0], P[:, 1]), t.sample_tri(P[:, 0], P[:, 1])) - lim
+
+    before = above(g)
+    assert (before > 0.05).sum() > 100, (before > 0.05).sum()        # (something to clear)
+    z0 = g.z.copy()
+    lowered = clear_road_points(g, P)
+    assert lowered > 0 and (g.z <= z0).all() and (g.z < z0).sum() == lowered
+    assert above(g).max() <= 1e-6, above(g).max()
+    # the same as levelling with the mask
+    g2 = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, grid.z.copy())
+    assert level_under_roads(g2, pts, hw, clear=car)["lowered_nodes"] == lowered
+    assert np.array_equal(g2.z, g.z)
 
 
 def test_levelling_keeps_the_terrain_under_a_street_below_another():
