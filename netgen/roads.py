@@ -360,12 +360,13 @@ def _internal_lanes(net):
     return out
 
 
-def _lane_strips(lanes, mitre_limit: float = 2.0):
-    """Shapely strips of lanes: the centreline buffered by half the width, flat ends."""
-    if not lanes:
+def _lane_strips(lanes, mitre_limit: float = 2.0, inset: float = 0.0):
+    """Shapely strips of lanes: the centreline buffered by half the width (less `inset`), flat
+    ends."""
+    if not len(lanes):
         return np.empty(0, dtype=object)
     P, g = _concat([ln.shape[:, :2] for ln in lanes])
-    return shapely.buffer(shapely.linestrings(P, indices=g), np.array([ln.width for ln in lanes]) / 2.0,
+    return shapely.buffer(shapely.linestrings(P, indices=g), np.array([ln.width for ln in lanes]) / 2.0 - inset,
                           cap_style="flat", join_style="mitre", mitre_limit=mitre_limit)
 
 
@@ -859,15 +860,16 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     # the pieces of sidewalks that lie on another road's carriageway are left out, and do not
     # hold the ground up either
     side = np.array([l.pedestrian_only for l in lanes])
-    seg_keep, pt_keep = _sidewalks_off_other_roads(C, cg, nrm, side, lanes, lane_edge, edges, jrings)
+    rail = np.array([bool(l.allowed) and l.allowed <= RAIL_CLASSES for l in lanes])
+    drive = np.array([l.drivable for l in lanes])
+    seg_keep, pt_keep = _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges, jrings)
     # support points for levelling and for junction heights: centrelines and lane corners
     Ck, czk, hwk, nk = C[pt_keep], cz[pt_keep], hw[pt_keep], nrm[pt_keep]
     tk = tilt[pt_keep] * np.hypot(nk[:, 0], nk[:, 1])
     corners = np.vstack([np.column_stack([Ck + nk, czk + tk]), np.column_stack([Ck - nk, czk - tk])])
     sup = [np.column_stack([Ck, czk]), corners]
     sup_hw = [hwk, np.zeros(len(corners))]
-    rail_lane = np.array([bool(l.allowed) and l.allowed <= RAIL_CLASSES for l in lanes])
-    car_k = ~(side | rail_lane)[cg[pt_keep]]
+    car_k = ~(side | rail)[cg[pt_keep]]
     sup_car = [car_k, np.concatenate([car_k, car_k])]
     tree = cKDTree(np.vstack(sup)[:, :2])
     supz = np.concatenate([czk, czk + tk, czk - tk])
@@ -991,10 +993,10 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
                 ok = np.isfinite(qz)
                 sup.append(np.column_stack([Q[ok], qz[ok]]))
                 sup_hw.append(np.full(int(ok.sum()), 0.5 * JUNCTION_SUPPORT_STEP))
-                sup_car.append(True)
+                sup_car.append(np.ones(int(ok.sum()), dtype=bool))
             sup.append(V)
             sup_hw.append(np.zeros(len(V)))
-            sup_car.append(True)
+            sup_car.append(np.ones(len(V), dtype=bool))
         return part
 
     junction_part = polygon_part("asphalt")
@@ -1019,16 +1021,14 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
                          [()] * n, gcen)
         sup.append(np.column_stack([G, gz]))
         sup_hw.append(ghw)
-        sup_car.append(True)
+        sup_car.append(np.ones(len(G), dtype=bool))
     geo.support_pts = np.vstack(sup)
     geo.support_hw = np.concatenate(sup_hw)
-    geo.support_car = np.concatenate([np.full(len(h), c) if np.isscalar(c) else c for h, c in zip(sup_hw, sup_car)])
+    geo.support_car = np.concatenate(sup_car)
     if on_support is not None:
         on_support(geo.support_pts, geo.support_hw, geo.support_car)
 
     # 4. lanes as strips
-    rail = np.array([bool(l.allowed) and l.allowed <= RAIL_CLASSES for l in lanes])
-    drive = np.array([l.drivable for l in lanes])
     ids = [lanes[k].id for k in range(len(lanes))]
     osm = [edges[lane_edge[k]].orig_ids for k in range(len(lanes))]
     cent = np.zeros((len(lanes), 2))
@@ -1134,18 +1134,16 @@ def _ends_on_planes(edges, lanes, lane_edge, C, cg, cz, cs, ctot, unit_left, pla
     move = np.where(ok, on - cz[at], 0.0)
     across = np.where(ok, L[:, 3] * unit_left[at, 0] + L[:, 4] * unit_left[at, 1], 0.0)
     n = len(first)
-    fade = np.minimum(END_FADE_M, 0.5 * ctot[lane_no])
-    fade = np.maximum(fade, 1e-6)
-    f0 = np.clip(1.0 - cs / np.repeat(fade, last - first + 1), 0.0, 1.0)
-    f1 = np.clip(1.0 - (np.repeat(ctot[lane_no], last - first + 1) - cs) / np.repeat(fade, last - first + 1),
-                 0.0, 1.0)
-    g = np.repeat(np.arange(n), last - first + 1)
+    g = np.repeat(np.arange(n), last - first + 1)          # (lane number per point)
+    fade = np.maximum(np.minimum(END_FADE_M, 0.5 * ctot[lane_no]), 1e-6)[g]
+    f0 = np.clip(1.0 - cs / fade, 0.0, 1.0)
+    f1 = np.clip(1.0 - (ctot[lane_no][g] - cs) / fade, 0.0, 1.0)
     cz += f0 * move[:n][g] + f1 * move[n:][g]
     tilt += f0 * across[:n][g] + f1 * across[n:][g]
     return tilt
 
 
-def _sidewalks_off_other_roads(C, cg, nrm, side, lanes, lane_edge, edges=None, jrings=None):
+def _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges, jrings):
     """Which pieces of the sidewalks to mesh: (per segment i -> i+1 of the resampled lane
     centrelines `C`, per point) masks, False for a sidewalk's segment that reaches more than
     :data:`SIDEWALK_INTRUSION_M` into a vehicle lane of another edge, or into a junction
@@ -1160,7 +1158,7 @@ def _sidewalks_off_other_roads(C, cg, nrm, side, lanes, lane_edge, edges=None, j
     n = len(C)
     seg_keep = np.ones(max(n - 1, 0), dtype=bool)
     pt_keep = np.ones(n, dtype=bool)
-    veh = np.nonzero(np.array([ln.drivable for ln in lanes]))[0] if len(lanes) else np.zeros(0, np.int64)
+    veh = np.nonzero(drive & (np.array([ln.width for ln in lanes]) / 2.0 > SIDEWALK_INTRUSION_M + 0.05))[0]
     if n < 2 or not side.any() or not len(veh):
         return seg_keep, pt_keep
     seg = np.nonzero((cg[1:] == cg[:-1]) & side[cg[:-1]])[0]
@@ -1168,16 +1166,11 @@ def _sidewalks_off_other_roads(C, cg, nrm, side, lanes, lane_edge, edges=None, j
         return seg_keep, pt_keep
     quads = shapely.polygons(np.stack([C[seg] + nrm[seg], C[seg + 1] + nrm[seg + 1],
                                        C[seg + 1] - nrm[seg + 1], C[seg] - nrm[seg]], axis=1))
-    keep_w = np.array([lanes[k].width / 2.0 - SIDEWALK_INTRUSION_M for k in veh])
-    ok = keep_w > 0.05
-    veh, keep_w = veh[ok], keep_w[ok]
-    P, g = _concat([lanes[k].shape[:, :2] for k in veh])
-    cores = shapely.buffer(shapely.linestrings(P, indices=g), keep_w, cap_style="flat", join_style="mitre",
-                           mitre_limit=2.0)
+    cores = _lane_strips([lanes[k] for k in veh], inset=SIDEWALK_INTRUSION_M)
     qi, vi = shapely.STRtree(cores).query(quads, predicate="intersects")
     other = lane_edge[cg[seg[qi]]] != lane_edge[veh[vi]]
     seg_keep[seg[qi[other]]] = False
-    if jrings and edges is not None:
+    if jrings:
         jids = list(jrings)
         jcores = shapely.buffer(shapely.make_valid([shapely.Polygon(jrings[j]) for j in jids]),
                                 -SIDEWALK_INTRUSION_M)

@@ -189,7 +189,7 @@ def level_under_roads(grid: TerrainGrid, pts: np.ndarray, halfwidth: np.ndarray,
     z[hi] = w * road_z + (1.0 - w) * z0[hi]
     grid.z = z.reshape(grid.z.shape)
     out = {"levelled_nodes": int(np.sum(w >= 1.0)), "blended_nodes": int(np.sum((w > 0) & (w < 1)))}
-    if clear is not False and clear is not None:
+    if clear is not False:
         out["lowered_nodes"] = clear_road_points(grid, pts if clear is True else pts[np.asarray(clear, dtype=bool)])
     out["max_change_m"] = float(np.max(np.abs(grid.z.ravel() - z0))) if len(z) else 0.0
     return out

@@ -461,8 +461,9 @@ def _check_junctions_do_not_fold(out: Path, w: dict):
     assert area[grade > 0.7].sum() < 0.01 * area.sum()
 
 
-def _junction_meshes(out: Path):
-    """(name, mesh) of every junction surface in the world's asphalt tiles."""
+def _tile_meshes(out: Path, kind: str, element: str):
+    """(name, mesh) of every piece of one element ("junction/", "lane/") in the world's tiles
+    of one class ("asphalt", "sidewalk")."""
     import trimesh
 
     from cosim.world import World
@@ -470,11 +471,16 @@ def _junction_meshes(out: Path):
     world = World(out)
     for c in world.chunks.values():
         for tile in c.get("tiles", {}).values():
-            if "asphalt" not in tile:
+            if kind not in tile:
                 continue
-            scene = trimesh.load(c["_base"] / tile["asphalt"], group_material=False, split_groups=True,
+            scene = trimesh.load(c["_base"] / tile[kind], group_material=False, split_groups=True,
                                  process=False, force="scene")
-            yield from ((name, g) for name, g in scene.geometry.items() if name.startswith("junction/"))
+            yield from ((name, g) for name, g in scene.geometry.items() if name.startswith(element))
+
+
+def _junction_meshes(out: Path):
+    """(name, mesh) of every junction surface in the world's asphalt tiles."""
+    return _tile_meshes(out, "asphalt", "junction/")
 
 
 def _junction_steps(out: Path) -> np.ndarray:
@@ -514,11 +520,7 @@ def _check_sidewalks_clear_other_roads(out: Path, w: dict) -> int:
     on a hillside it stood up to 1.9 m above that lane (the car drove into it). Returns how
     many sidewalk faces were checked."""
     import shapely
-    import trimesh
 
-    from cosim.world import World
-
-    world = World(out)
     net = read_net(out / w["net_file"])
     tunnels = set(w["tunnels"])         # (not meshed: a sidewalk may pass over one)
     lanes = [(e.id, ln) for e in net.edges.values() if e.function == "normal" and e.id not in tunnels
@@ -530,24 +532,16 @@ def _check_sidewalks_clear_other_roads(out: Path, w: dict) -> int:
               for n in (e.from_node, e.to_node)}
     js = [j for j in net.junctions.values() if j.id in meshed and j.shape is not None and len(j.shape) >= 3]
     cores += list(shapely.buffer(shapely.make_valid([shapely.Polygon(j.shape[:, :2]) for j in js]), -0.31))
-    owner = [("lane", e, ()) for e, _ in lanes] + [("junction", j.id, ()) for j in js]
+    owner = [e for e, _ in lanes] + [j.id for j in js]          # (edge or junction id per core)
     ends = {e.id: (e.from_node, e.to_node) for e in net.edges.values()}
     tree = shapely.STRtree(cores)
     n, on = 0, []
-    for c in world.chunks.values():
-        for tile in c.get("tiles", {}).values():
-            if "sidewalk" not in tile:
-                continue
-            scene = trimesh.load(c["_base"] / tile["sidewalk"], group_material=False, split_groups=True,
-                                 process=False, force="scene")
-            for name, g in scene.geometry.items():
-                if not name.startswith("lane/"):
-                    continue
-                edge = name.split("/", 1)[1].rsplit("_", 1)[0]
-                P = g.triangles_center
-                n += len(P)
-                pi, li = tree.query(shapely.points(P[:, :2]), predicate="within")
-                on += [(name, owner[k][1]) for k in li if owner[k][1] != edge and owner[k][1] not in ends[edge]]
+    for name, g in _tile_meshes(out, "sidewalk", "lane/"):
+        edge = name.split("/", 1)[1].rsplit("_", 1)[0]
+        P = g.triangles_center
+        n += len(P)
+        _, li = tree.query(shapely.points(P[:, :2]), predicate="within")
+        on += [(name, owner[k]) for k in li if owner[k] != edge and owner[k] not in ends[edge]]
     assert n > 1000
     assert not on, (len(on), sorted(set(on))[:5])
     return n
