@@ -85,6 +85,8 @@ class Edge:
     lanes: list = field(default_factory=list)
     raw_shape: np.ndarray | None = None     # from-node .. to-node geometry (unclipped)
     tunnel: bool = False           # OSM tunnel=* (yes, culvert, ...): under the ground, not on it
+    priority: int = 0              # netconvert's edge priority (from the road type)
+    layer: int = 0                 # OSM layer=* (a bridge without one: 1)
 
 
     @property
@@ -130,6 +132,15 @@ class RoadNet:
 
 
 @lru_cache(maxsize=None)
+def _int(s: str | None, default=0):
+    """An integer attribute (OSM's ``layer`` may be ``1;2`` or ``-0.5``: the first number,
+    truncated); `default` where there is none."""
+    try:
+        return int(float(str(s).split(";")[0]))
+    except (TypeError, ValueError):
+        return default
+
+
 def _allowed(allow: str | None, disallow: str | None) -> frozenset:
     return frozenset(get_allowed(allow, disallow))
 
@@ -234,7 +245,8 @@ def _read(f, internal: bool, internal_junctions: bool | None = None) -> RoadNet:
                 el.clear()
                 continue
             e = Edge(id=get("id"), function=get("function", "normal"), from_node=get("from"),
-                     to_node=get("to"), name=get("name", ""), type=get("type", ""), orig_ids=())
+                     to_node=get("to"), name=get("name", ""), type=get("type", ""), orig_ids=(),
+                     priority=_int(get("priority")))
             shape = get("shape")
             if shape is not None:
                 shape_str.append(shape)
@@ -252,9 +264,16 @@ def _read(f, internal: bool, internal_junctions: bool | None = None) -> RoadNet:
                         if prm.get("key") == "origId":
                             e.orig_ids = tuple(prm.get("value", "").split())
                             break
+            layer = bridge = None
             for prm in _children(el, "param"):
-                if prm.get("key") == "tunnel":
+                key = prm.get("key")
+                if key == "tunnel":
                     e.tunnel = prm.get("value", "no") not in SURFACE_TUNNEL_VALUES
+                elif key == "layer":
+                    layer = _int(prm.get("value"), None)
+                elif key == "bridge":
+                    bridge = prm.get("value", "no") != "no"
+            e.layer = layer if layer is not None else (1 if bridge else 0)
             edges[e.id] = e
         elif tag == "junction":
             get = el.get

@@ -57,12 +57,21 @@ _LANE_INDEX = attrgetter("index")
 JUNCTION_SUPPORT_STEP = 4.0
 #: the steepest grade a junction's plane may have (the edges that meet it take up the rest)
 JUNCTION_MAX_GRADE = 0.07
+#: an edge's mean grade (end to end) beyond this is a DEM artefact that the planes take out
+EDGE_MAX_GRADE = 0.25
 #: passes of a [1 2 1] / 4 filter over each edge's height profile (points about 2.5 m apart;
 #: 8 passes: a vertical curve of about 10 m where the ground's grade changes)
 PROFILE_SMOOTH_PASSES = 8
 #: a lane's ends are put on their junction's plane (across the lane's width too), the move
 #: fading out over this length (m; at most half the lane)
 END_FADE_M = 10.0
+#: a road that overlaps a higher-ranked one without a junction takes its height there, fading
+#: back to its own over this length (:func:`_conform_to_higher_roads`), and stays this far under it
+CONFORM_FADE_M = 15.0
+CONFORM_BELOW_M = 0.02
+CONFORM_MAX_M = 1.6             # (further apart than this somewhere: a bridge over a road, both kept)
+CONFORM_MIN_OVERLAP_M = 1.0     # (of the cross-section inside the other road's lane: a sliver
+                                # where two roads' lanes graze near a junction does not count)
 #: how far a sidewalk may reach into a vehicle lane of another road before that piece of it is
 #: left out (m)
 SIDEWALK_INTRUSION_M = 0.3
@@ -562,7 +571,8 @@ def carriageway_parts(net) -> list:
 
 def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, junctions=None,
                      max_grade: float = JUNCTION_MAX_GRADE, grade_weight: float = 40.0, tie_weight: float = 3.0,
-                     ridge: float = 0.5, planes_out: dict | None = None) -> int:
+                     ridge: float = 0.5, planes_out: dict | None = None,
+                     max_edge_grade: float = EDGE_MAX_GRADE) -> int:
     """Make the ends of the edges that meet at a node lie on one plane (``rz`` in place).
 
     Each edge's profile is sampled from the ground, so the roads at a junction on a hillside
@@ -575,7 +585,8 @@ def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, juncti
     slightly damped so that two ends give a line, not a tilt across it) and capped at
     ``max_grade``; its height chosen for all nodes at once (sparse least squares) to keep the
     ends near their ground (1 m of move costs 1) and the grade each edge takes up small (a
-    change of an edge's mean grade by 0.1 costs as much as 4 m: ``grade_weight``), and two
+    change of an edge's mean grade by 0.1 costs as much as 4 m: ``grade_weight``; but a mean
+    grade steeper than ``max_edge_grade`` is asked to come down to it), and two
     different roads that overlap in plan (``half_width`` per profile: the edge's half width)
     at one height where they overlap (``tie_weight`` per profile point), as are a junction
     (``junctions``: id -> polygon ring; its surface is close to its plane) and another
@@ -631,8 +642,19 @@ def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, juncti
     u = rs / np.maximum(rtot[rg], 1e-9)
     rows = [np.arange(2 * n), 2 * n + np.arange(n), 2 * n + np.arange(n)]
     cols = [node, k1, k0]
+    # (an edge's mean grade is kept, but for the part beyond max_edge_grade: a DEM's cliff
+    # between two junctions 7 m apart gave a Monaco street a 46 % step down, where a car's
+    # chassis struck the road at the bottom)
+    G = (Z[n:] - Z[:n]) / L
+    # (the road between two nodes is as long as the shortest of the edges that join them: a
+    # street's other direction, between the same two junctions, can be half as long)
+    pair = np.minimum(k0, k1) * m + np.maximum(k0, k1)
+    _, inv = np.unique(pair, return_inverse=True)
+    shortest = np.full(inv.max() + 1, np.inf)
+    np.minimum.at(shortest, inv, L)
+    cap = max_edge_grade * shortest[inv] / L
     vals = [np.ones(2 * n), w, -w]
-    rhs = [r, w * (r[n:] - r[:n])]
+    rhs = [r, w * (r[n:] - r[:n]) + w * L * (np.clip(G, -cap, cap) - G)]
     nr = 3 * n
     if half_width is not None and tie_weight > 0 and len(RP) > 1:
         from scipy.spatial import cKDTree
@@ -792,31 +814,128 @@ def _share_opposite_profiles(edges, lane_edge, ref_e, RP, rg, rz, C, cg, cz, max
     sel = np.nonzero(tg >= 0)[0]
     if not len(sel) or not len(RP):
         return 0
-    k = min(16, len(RP))
-    d, idx = cKDTree(RP).query(C[sel], k=k, workers=-1)
-    idx = idx.reshape(len(sel), k)
-    same = rg[idx] == tg[sel][:, None]
-    has = same.any(axis=1)
-    j = idx[np.arange(len(sel)), np.argmax(same, axis=1)]
-    sel, j = sel[has], j[has]
+    best_z, best_d = _onto_profiles(RP, rg, rz, C[sel], tg[sel])
+    use = np.isfinite(best_z) & (best_d <= max_d)
+    cz[sel[use]] = best_z[use]
+    return int(use.sum())
+
+
+def _onto_profiles(RP, rg, rz, pts, groups):
+    """Height of profile `groups[i]` (of the profiles RP, rg, rz) where point `pts[i]`
+    projects onto it, and the distance to it (NaN, inf where none of the profile's points is
+    among the 16 nearest)."""
     n = len(RP)
-    best_z = np.full(len(sel), np.nan)
-    best_d = np.full(len(sel), np.inf)
+    if not len(pts) or not n:
+        return np.full(len(pts), np.nan), np.full(len(pts), np.inf)
+    k = min(16, n)
+    _, idx = cKDTree(RP).query(pts, k=k, workers=-1)
+    idx = idx.reshape(len(pts), k)
+    same = rg[idx] == groups[:, None]
+    has = same.any(axis=1)
+    j = idx[np.arange(len(pts)), np.argmax(same, axis=1)]
+    best_z = np.full(len(pts), np.nan)
+    best_d = np.full(len(pts), np.inf)
     for a_off in (-1, 0):           # the segments (j-1, j) and (j, j+1) of the same profile
         a, b = j + a_off, j + a_off + 1
-        ok = (a >= 0) & (b < n)
+        ok = has & (a >= 0) & (b < n)
         a, b = np.clip(a, 0, n - 1), np.clip(b, 0, n - 1)
         ok &= (rg[a] == rg[j]) & (rg[b] == rg[j])
         v = RP[b] - RP[a]
         L2 = np.maximum((v * v).sum(axis=1), 1e-12)
-        t = np.clip(((C[sel] - RP[a]) * v).sum(axis=1) / L2, 0.0, 1.0)
-        dist = np.hypot(*(RP[a] + t[:, None] * v - C[sel]).T)
+        t = np.clip(((pts - RP[a]) * v).sum(axis=1) / L2, 0.0, 1.0)
+        dist = np.hypot(*(RP[a] + t[:, None] * v - pts).T)
         better = ok & (dist < best_d)
         best_d = np.where(better, dist, best_d)
         best_z = np.where(better, rz[a] + t * (rz[b] - rz[a]), best_z)
-    use = np.isfinite(best_z) & (best_d <= max_d)
-    cz[sel[use]] = best_z[use]
-    return int(use.sum())
+    return best_z, best_d
+
+
+def _higher_roads(edges, lanes, lane_edge):
+    """For :func:`_conform_to_higher_roads`: the vehicle lanes (numbers, their strips less
+    :data:`SIDEWALK_INTRUSION_M` along each side) and each edge's rank: OSM layer (a bridge is
+    1), netconvert's priority, vehicle lanes, width, then the id."""
+    ne = len(edges)
+    veh = np.array([k for k, ln in enumerate(lanes) if ln.drivable and not (ln.allowed and ln.allowed <= RAIL_CLASSES)],
+                   dtype=np.int64)
+    nveh = np.bincount(lane_edge[veh], minlength=ne)
+    width = np.bincount(lane_edge, np.array([ln.width for ln in lanes]), minlength=ne)
+    order = sorted(range(ne), key=lambda i: (edges[i].layer, edges[i].priority, nveh[i], round(width[i], 2), edges[i].id))
+    rank = np.empty(ne, dtype=np.int64)
+    rank[order] = np.arange(ne)
+    cores = _lane_strips([lanes[k] for k in veh], inset=SIDEWALK_INTRUSION_M)
+    return veh, cores, rank
+
+
+def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_edge, halfw, onto,
+                             lower_only: bool = False, fade: float = CONFORM_FADE_M) -> int:
+    """Heights ``z`` (in place) of the points `P` (lines `g`, arc length `s`) of roads that
+    overlap a higher-ranked road without meeting it at a node: where a point's cross-section
+    (``halfw`` either side) runs for :data:`CONFORM_MIN_OVERLAP_M` or more inside a vehicle
+    lane of such a road (:func:`_higher_roads`), it takes that road's height, 2 cm under it
+    (``onto(points, lane numbers, edge numbers)``); the move fades out along the line over
+    ``fade`` metres either side. With ``lower_only``, points only move down. Two roads that
+    are more than :data:`CONFORM_MAX_M` apart in height anywhere they overlap are a bridge and
+    the road under it: neither moves.
+
+    Roads that cross without a junction are a bridge or tunnel that OSM does not tag (a
+    service road in Monaco's old railway tunnel under Boulevard Princesse Charlotte), or a
+    bridge the world keeps on the ground; and a street's two carriageways mapped closer than
+    their lanes' widths overlap. Each edge's profile follows its own patch of ground, so on a
+    hillside one stood through the other: the tunnel's road 0.3 m proud of the boulevard's
+    lane, which a car drove into; the two carriageways of Avenue Princesse Grace 1.4 m apart
+    where they overlap. Returns how many points moved."""
+    veh, cores, rank = higher
+    if not len(P) or not len(veh):
+        return 0
+    nrm = _normals_many(P, g) * halfw[:, None]
+    sections = shapely.linestrings(np.stack([P - nrm, P + nrm], axis=1))
+    pi, vi = shapely.STRtree(cores).query(sections, predicate="intersects")
+    B = lane_edge[veh[vi]]
+    ok = rank[B] > rank[own_edge[pi]]
+    pi, vi, B = pi[ok], vi[ok], B[ok]
+    ok = shapely.length(shapely.intersection(sections[pi], cores[vi])) >= CONFORM_MIN_OVERLAP_M
+    pi, vi, B = pi[ok], vi[ok], B[ok]
+    ends = [(e.from_node, e.to_node) for e in edges]
+    meet = np.array([bool(set(ends[a]) & set(ends[b])) for a, b in zip(own_edge[pi], B)], dtype=bool)
+    pi, vi, B = pi[~meet], vi[~meet], B[~meet]
+    if not len(pi):
+        return 0
+    o = np.lexsort((rank[B], pi))                   # per point, the highest-ranked road
+    pi, vi, B = pi[o], vi[o], B[o]
+    top = np.r_[pi[1:] != pi[:-1], True]
+    pi, vi, B = pi[top], vi[top], B[top]
+    tz = onto(P[pi], veh[vi], B)
+    fin = np.isfinite(tz)
+    pi, B, tz = pi[fin], B[fin], tz[fin] - CONFORM_BELOW_M
+    # two roads further apart in height than a car is tall are a bridge and the road under it
+    # (a car on the lower one passes under the other): both stay
+    pair = own_edge[pi] * len(edges) + B
+    _, inv = np.unique(pair, return_inverse=True)
+    apart = np.zeros(inv.max() + 1 if len(inv) else 0)
+    np.maximum.at(apart, inv, np.abs(tz - z[pi]))
+    keep = apart[inv] <= CONFORM_MAX_M
+    pi, tz = pi[keep], tz[keep]
+    n = len(P)
+    delta = np.zeros(n)             # (the move, not the height, fades: the road keeps its grade)
+    delta[pi] = tz - z[pi]
+    if lower_only:
+        delta = np.minimum(delta, 0.0)
+    on = np.zeros(n, dtype=bool)
+    on[pi[delta[pi] != 0.0]] = True
+    if not on.any():
+        return 0
+    # each point: the nearest moved point of its own line, along it
+    idx = np.arange(n)
+    prev = np.maximum.accumulate(np.where(on, idx, -1))
+    nxt = np.minimum.accumulate(np.where(on, idx, n)[::-1])[::-1]
+    pv, nx = np.clip(prev, 0, n - 1), np.clip(nxt, 0, n - 1)
+    dprev = np.where((prev >= 0) & (g[pv] == g), s - s[pv], np.inf)
+    dnext = np.where((nxt < n) & (g[nx] == g), s[nx] - s, np.inf)
+    near = np.where(dprev <= dnext, pv, nx)
+    w = np.clip(1.0 - np.minimum(dprev, dnext) / fade, 0.0, 1.0)
+    moved = w > 0.0
+    z[moved] += w[moved] * delta[near[moved]]
+    return int(moved.sum())
 
 
 def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry:
@@ -842,9 +961,25 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     jrings = {j.id: r for j in net.junctions.values()
               if j.type != "internal" and j.id not in under and j.shape is not None and len(j.shape) >= 3
               for r in (_open_ring(j.shape[:, :2]),) if r is not None}
+    # roads that overlap a higher-ranked road without a junction take its height there: before
+    # the planes are fitted (so that the nodes near the overlap follow) and again after
+    higher = _higher_roads(edges, lanes, lane_edge)
+    group_of = np.full(len(edges), -1, dtype=np.int64)
+    group_of[ref_e] = np.arange(len(ref_e))
+
+    def onto_profile(pts, lane_no, edge_no):        # (the other road's profile, where it projects)
+        gB = group_of[edge_no]
+        z, _ = _onto_profiles(RP, rg, rz, pts, gB)
+        return np.where(gB >= 0, z, np.nan)
+
+    conform = lambda: _conform_to_higher_roads(edges, lanes, lane_edge, higher, RP, rg, rs, rz,   # noqa: E731
+                                               ref_e[rg], edge_hw[ref_e[rg]], onto_profile)
+    conform()
     planes: dict = {}
     ends_moved = _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=edge_hw[ref_e], junctions=jrings,
                                   planes_out=planes)
+
+    conformed = conform()
 
     # 2. lane centrelines, resampled, with heights from their edge's profile
     LP, lg = _concat([l.shape for l in lanes])
@@ -863,6 +998,12 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     # each lane's ends onto its nodes' planes, across its width too: cz moves, and the lane
     # tilts across (tilt: height gained per metre to the left) near its ends
     tilt = _ends_on_planes(edges, lanes, lane_edge, C, cg, cz, cs, ctot, nrm / hw[:, None], planes)
+    # and where a lane's end (on its node's plane) or a turn still stands through a
+    # higher-ranked road, it goes under it (a dead-end service road ending on a Monaco bridge
+    # stood 0.3 m through it)
+    conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, lane_edge[cg], hw,
+                                          lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0],
+                                          lower_only=True)
     # the pieces of sidewalks that lie on another road's carriageway are left out, and do not
     # hold the ground up either
     side = np.array([l.pedestrian_only for l in lanes])
@@ -1102,6 +1243,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
                  "junction_lanes_meshed": len(gap_lanes),
                  "crossings_meshed": len(crossings),
                  "junction_ends_moved": ends_moved,
+                 "points_conformed": conformed,
                  "faces": int(sum(len(p.faces) for ps in geo.parts.values() for p in ps))}
     return geo
 
