@@ -11,7 +11,10 @@ Real-time factors are taken side by side in one run, on the same network, demand
   alternate, so both meet the machine in the same state);
 * the full co-simulation: SUMO + PyBullet (ego car, mirrored actors, streamed tiles), headless,
   with SUMO in the same process ("serial") and in its worker process stepping while the
-  physics runs ("pipelined", the default on two or more CPUs).
+  physics runs ("pipelined", the default on two or more CPUs). Each run builds the window it
+  drives into from scratch (``<world>/windows`` is emptied first; ``--keep-windows`` reuses
+  an earlier run's), as a drive into a new place would: a window build (netconvert, meshing,
+  demand) takes several CPU seconds, which on one core come out of the loop's time.
 
 The goals: co-sim >= 0.7 x SUMO-alone speed with ~400 actors, >= 20x real time; frame time
 p99.9 <= 2 x median and no frame over 50 ms caused by tile loading. The soak reports memory
@@ -22,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import statistics
 import sys
 import time
@@ -189,6 +193,8 @@ def main(argv=None):
     ap.add_argument("--mode", choices=["both", "serial", "pipelined"], default="both",
                     help="SUMO in-process (serial) and/or in a worker process stepping beside the physics")
     ap.add_argument("--out", default=str(REPO / "bench" / "results" / "worlds"))
+    ap.add_argument("--keep-windows", action="store_true",
+                    help="reuse windows built by an earlier run (by default each run builds its own)")
     ap.add_argument("--cpus", type=int, default=0,
                     help="pin this run (and SUMO's worker) to this many CPUs, e.g. 1 for the one-core figure")
     a = ap.parse_args(argv)
@@ -208,6 +214,8 @@ def main(argv=None):
     print("   (SUMO alone steps in its own process, in blocks of 50 steps that alternate with the co-simulation's)")
     modes = [("serial", False), ("pipelined", True)] if a.mode == "both" else [(a.mode, a.mode == "pipelined")]
     for name, parallel in modes:
+        if not a.keep_windows:      # each run builds the window it drives into, as a new place would
+            shutil.rmtree(world / "windows", ignore_errors=True)
         alone = SumoAlone(world / w["net_file"], d.route_files, a.seed)
         try:
             rtf_co, s, f, ld, tl = cosim(world, a.traffic, a.seconds, a.seed, a.warm, a.speed, parallel, alone)
