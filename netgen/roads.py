@@ -216,21 +216,28 @@ def _top_surface_z(xy, parts, cell: float = 8.0):
     """Height of the highest triangle of `parts` (MeshParts) over each point of `xy` (n, 2);
     NaN where there is none."""
     top = np.full(len(xy), -np.inf)
+    if not len(xy):
+        return np.full(0, np.nan)
     # only the triangles that can hold a point: with a corner in a cell next to one of a
     # point's, or spanning more than a cell (one that holds a point and spans less has its
-    # corners within a cell of it)
-    near = _cell_keys(xy, cell, dilate=True)
+    # corners within a cell of it; one whose corners' cells are 2 or more apart spans more)
+    near = _cell_keys(xy, cell, dilate=True)            # (sorted)
     T = []
     for p in parts:
         if not len(p.faces):
             continue
-        vnear = np.isin(_cell_keys(p.vertices[:, :2], cell), near)
-        keep = vnear[p.faces].any(axis=1)
-        rest = np.nonzero(~keep)[0]
-        R = p.vertices[p.faces[rest], :2]
-        keep[rest[np.ptp(R, axis=1).max(axis=1) > cell]] = True
-        T.append(p.vertices[p.faces[keep]])
-    if not T or not len(xy):
+        ij = np.floor(p.vertices[:, :2] / cell).astype(np.int64)
+        vk = _keys(ij)
+        pos = np.minimum(np.searchsorted(near, vk), len(near) - 1)
+        vnear = near[pos] == vk
+        f = p.faces
+        keep = vnear[f[:, 0]] | vnear[f[:, 1]] | vnear[f[:, 2]]
+        rest = np.flatnonzero(~keep)
+        a, b, c = ij[f[rest, 0]], ij[f[rest, 1]], ij[f[rest, 2]]
+        span = np.maximum(np.maximum(a, b), c) - np.minimum(np.minimum(a, b), c)
+        keep[rest[(span >= 2).any(axis=1)]] = True
+        T.append(p.vertices[f[keep]])
+    if not T:
         return np.full(len(xy), np.nan)
     T = np.concatenate(T)                                      # (n, 3, 3)
     a, b, c = T[:, 0], T[:, 1], T[:, 2]
@@ -240,15 +247,17 @@ def _top_surface_z(xy, parts, cell: float = 8.0):
     if not len(T):
         return np.full(len(xy), np.nan)
     # candidate (point, triangle) pairs: each triangle listed under the cells of a finer grid
-    # its bounding box covers, each point looked up in its cell
+    # its bounding box covers, each point looked up in its cell; then the point in the
+    # triangle's bounding box (4 numbers a pair), before the triangle itself (10)
     fine = cell / 2.0
-    lo = np.floor(T[:, :, :2].min(axis=1) / fine).astype(np.int64)
-    hi = np.floor(T[:, :, :2].max(axis=1) / fine).astype(np.int64)
+    bmin, bmax = T[:, :, :2].min(axis=1), T[:, :, :2].max(axis=1)
+    lo = np.floor(bmin / fine).astype(np.int64)
+    hi = np.floor(bmax / fine).astype(np.int64)
     nx, ny = hi[:, 0] - lo[:, 0] + 1, hi[:, 1] - lo[:, 1] + 1
     nc = nx * ny
     tri = np.repeat(np.arange(len(T)), nc)
     k = np.arange(nc.sum()) - np.repeat(np.cumsum(nc) - nc, nc)
-    ckey = ((lo[tri, 0] + k % nx[tri]) << 32) + (lo[tri, 1] + k // nx[tri])
+    ckey = _keys(np.column_stack([lo[tri, 0] + k % nx[tri], lo[tri, 1] + k // nx[tri]]))
     order = np.argsort(ckey, kind="stable")
     ckey, tri = ckey[order], tri[order]
     pkey = _cell_keys(xy, fine)
@@ -256,8 +265,12 @@ def _top_surface_z(xy, parts, cell: float = 8.0):
     cnt = last - first
     pi = np.repeat(np.arange(len(xy)), cnt)
     ti = tri[np.repeat(first, cnt) + np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)]
-    a, b, c = T[ti, 0], T[ti, 1], T[ti, 2]
     x, y = xy[pi, 0], xy[pi, 1]
+    eps = 1e-6
+    inb = (x >= bmin[ti, 0] - eps) & (x <= bmax[ti, 0] + eps) & (y >= bmin[ti, 1] - eps) & (y <= bmax[ti, 1] + eps)
+    pi, ti, x, y = pi[inb], ti[inb], x[inb], y[inb]
+    Tt = T[ti]
+    a, b, c = Tt[:, 0], Tt[:, 1], Tt[:, 2]
     l1 = ((b[:, 1] - c[:, 1]) * (x - c[:, 0]) + (c[:, 0] - b[:, 0]) * (y - c[:, 1])) / det[ti]
     l2 = ((c[:, 1] - a[:, 1]) * (x - c[:, 0]) + (a[:, 0] - c[:, 0]) * (y - c[:, 1])) / det[ti]
     inside = (l1 >= -1e-9) & (l2 >= -1e-9) & (l1 + l2 <= 1.0 + 1e-9)
@@ -267,15 +280,23 @@ def _top_surface_z(xy, parts, cell: float = 8.0):
     return top
 
 
+_KEY_BIAS = 1 << 30
+
+
+def _keys(ij):
+    """One int64 per (i, j) cell (|i|, |j| < 2^30)."""
+    return ((ij[:, 0] + _KEY_BIAS) << 32) + (ij[:, 1] + _KEY_BIAS)
+
+
 def _cell_keys(xy, cell: float, dilate: bool = False):
-    """One int64 per point: its square of a grid of `cell` metres; with `dilate`, the unique
-    keys of the points' squares and of the 8 around each."""
-    ij = np.floor(xy / cell).astype(np.int64)
+    """One int64 per point: its square of a grid of `cell` metres (:func:`_keys`); with
+    `dilate`, the unique keys (sorted) of the points' squares and of the 8 around each."""
+    k = _keys(np.floor(xy / cell).astype(np.int64))
     if not dilate:
-        return (ij[:, 0] << 32) + ij[:, 1]
-    ij = np.unique(ij, axis=0)
-    d = np.array([-1, 0, 1])
-    return np.unique(((ij[:, 0, None, None] + d[:, None]) << 32) + (ij[:, 1, None, None] + d[None, :]))
+        return k
+    k = np.unique(k)
+    d = np.array([-1, 0, 1], dtype=np.int64)
+    return np.unique(k[:, None] + ((d[:, None] << 32) + d[None, :]).ravel()[None, :])
 
 
 def _part(kind, v, f, fg, n_groups, ids, elements, osm, centroids):
@@ -827,9 +848,12 @@ def _onto_profiles(RP, rg, rz, pts, groups):
     n = len(RP)
     if not len(pts) or not n:
         return np.full(len(pts), np.nan), np.full(len(pts), np.inf)
-    k = min(16, n)
-    _, idx = cKDTree(RP).query(pts, k=k, workers=-1)
-    idx = idx.reshape(len(pts), k)
+    sub = np.flatnonzero(np.isin(rg, np.unique(groups)))    # (the tree over those profiles only)
+    if not len(sub):
+        return np.full(len(pts), np.nan), np.full(len(pts), np.inf)
+    k = min(16, len(sub))
+    _, idx = cKDTree(RP[sub]).query(pts, k=k, workers=-1)
+    idx = sub[idx.reshape(len(pts), k)]
     same = rg[idx] == groups[:, None]
     has = same.any(axis=1)
     j = idx[np.arange(len(pts)), np.argmax(same, axis=1)]
@@ -852,8 +876,8 @@ def _onto_profiles(RP, rg, rz, pts, groups):
 
 def _higher_roads(edges, lanes, lane_edge):
     """For :func:`_conform_to_higher_roads`: the vehicle lanes (numbers, their strips less
-    :data:`SIDEWALK_INTRUSION_M` along each side) and each edge's rank: OSM layer (a bridge is
-    1), netconvert's priority, vehicle lanes, width, then the id."""
+    :data:`SIDEWALK_INTRUSION_M` along each side), each edge's rank (OSM layer, a bridge being
+    1; netconvert's priority, vehicle lanes, width, then the id) and its nodes' numbers."""
     ne = len(edges)
     veh = np.array([k for k, ln in enumerate(lanes) if ln.drivable and not (ln.allowed and ln.allowed <= RAIL_CLASSES)],
                    dtype=np.int64)
@@ -863,17 +887,49 @@ def _higher_roads(edges, lanes, lane_edge):
     rank = np.empty(ne, dtype=np.int64)
     rank[order] = np.arange(ne)
     cores = _lane_strips([lanes[k] for k in veh], inset=SIDEWALK_INTRUSION_M)
-    return veh, cores, rank
+    shapely.prepare(cores)
+    node_no: dict = {}
+    fn = np.array([node_no.setdefault(e.from_node, len(node_no)) for e in edges], dtype=np.int64)
+    tn = np.array([node_no.setdefault(e.to_node, len(node_no)) for e in edges], dtype=np.int64)
+    return veh, cores, rank, fn, tn, shapely.bounds(cores)
+
+
+def _box_pairs(bmin, bmax, boxes, cell: float = 25.0):
+    """Pairs (i, j) of boxes ``(bmin[i], bmax[i])`` (many, small) and ``boxes[j]`` (xmin,
+    ymin, xmax, ymax) that overlap: each small box hashed to the grid cell of its centre, each
+    big one to every cell it covers grown by the largest small half size, then the boxes
+    compared (numpy: tens of thousands of shapely boxes and an STRtree query cost more)."""
+    if not len(bmin) or not len(boxes):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    grow = float(np.max(bmax - bmin)) / 2.0
+    cen = _keys(np.floor((bmin + bmax) / 2.0 / cell).astype(np.int64))
+    lo = np.floor((boxes[:, :2] - grow) / cell).astype(np.int64)
+    hi = np.floor((boxes[:, 2:] + grow) / cell).astype(np.int64)
+    nx, ny = hi[:, 0] - lo[:, 0] + 1, hi[:, 1] - lo[:, 1] + 1
+    nc = nx * ny
+    j = np.repeat(np.arange(len(boxes)), nc)
+    k = np.arange(nc.sum()) - np.repeat(np.cumsum(nc) - nc, nc)
+    ckey = _keys(np.column_stack([lo[j, 0] + k % nx[j], lo[j, 1] + k // nx[j]]))
+    order = np.argsort(ckey, kind="stable")
+    ckey, j = ckey[order], j[order]
+    first, last = np.searchsorted(ckey, cen, "left"), np.searchsorted(ckey, cen, "right")
+    cnt = last - first
+    i = np.repeat(np.arange(len(bmin)), cnt)
+    j = j[np.repeat(first, cnt) + np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)]
+    ok = (bmin[i, 0] <= boxes[j, 2]) & (bmax[i, 0] >= boxes[j, 0]) & (bmin[i, 1] <= boxes[j, 3]) & \
+         (bmax[i, 1] >= boxes[j, 1])
+    return i[ok], j[ok]
 
 
 def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_edge, halfw, onto,
-                             lower_only: bool = False, fade: float = CONFORM_FADE_M) -> int:
+                             lower_only: bool = False, only=None, fade: float = CONFORM_FADE_M) -> int:
     """Heights ``z`` (in place) of the points `P` (lines `g`, arc length `s`) of roads that
     overlap a higher-ranked road without meeting it at a node: where a point's cross-section
     (``halfw`` either side) runs for :data:`CONFORM_MIN_OVERLAP_M` or more inside a vehicle
     lane of such a road (:func:`_higher_roads`), it takes that road's height, 2 cm under it
     (``onto(points, lane numbers, edge numbers)``); the move fades out along the line over
-    ``fade`` metres either side. With ``lower_only``, points only move down. Two roads that
+    ``fade`` metres either side. With ``lower_only``, points only move down; ``only`` (a
+    mask) limits the points looked at (not the fade). Two roads that
     are more than :data:`CONFORM_MAX_M` apart in height anywhere they overlap are a bridge and
     the road under it: neither moves.
 
@@ -884,20 +940,26 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     hillside one stood through the other: the tunnel's road 0.3 m proud of the boulevard's
     lane, which a car drove into; the two carriageways of Avenue Princesse Grace 1.4 m apart
     where they overlap. Returns how many points moved."""
-    veh, cores, rank = higher
+    veh, cores, rank, fn, tn, core_box = higher
     if not len(P) or not len(veh):
         return 0
-    nrm = _normals_many(P, g) * halfw[:, None]
-    sections = shapely.linestrings(np.stack([P - nrm, P + nrm], axis=1))
-    pi, vi = shapely.STRtree(cores).query(sections, predicate="intersects")
-    B = lane_edge[veh[vi]]
-    ok = rank[B] > rank[own_edge[pi]]
-    pi, vi, B = pi[ok], vi[ok], B[ok]
-    ok = shapely.length(shapely.intersection(sections[pi], cores[vi])) >= CONFORM_MIN_OVERLAP_M
-    pi, vi, B = pi[ok], vi[ok], B[ok]
-    ends = [(e.from_node, e.to_node) for e in edges]
-    meet = np.array([bool(set(ends[a]) & set(ends[b])) for a, b in zip(own_edge[pi], B)], dtype=bool)
-    pi, vi, B = pi[~meet], vi[~meet], B[~meet]
+    sel = np.arange(len(P)) if only is None else np.flatnonzero(only)
+    if not len(sel):
+        return 0
+    nrm = _normals_many(P, g)[sel] * halfw[sel, None]
+    lo, hi = P[sel] - nrm, P[sel] + nrm
+    # (pairs by bounding box, then the cheap tests, then the geometry)
+    qi, vi = _box_pairs(np.minimum(lo, hi), np.maximum(lo, hi), core_box)
+    A, B = own_edge[sel[qi]], lane_edge[veh[vi]]
+    ok = (rank[B] > rank[A]) & (fn[A] != fn[B]) & (fn[A] != tn[B]) & (tn[A] != fn[B]) & (tn[A] != tn[B])
+    qi, vi, B = qi[ok], vi[ok], B[ok]
+    if not len(qi):
+        return 0
+    sections = shapely.linestrings(np.stack([lo[qi], hi[qi]], axis=1))
+    ok = shapely.intersects(cores[vi], sections)            # (prepared: fast)
+    qi, vi, B, sections = qi[ok], vi[ok], B[ok], sections[ok]
+    ok = shapely.length(shapely.intersection(sections, cores[vi])) >= CONFORM_MIN_OVERLAP_M
+    pi, vi, B = sel[qi[ok]], vi[ok], B[ok]
     if not len(pi):
         return 0
     o = np.lexsort((rank[B], pi))                   # per point, the highest-ranked road
@@ -998,12 +1060,13 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     # each lane's ends onto its nodes' planes, across its width too: cz moves, and the lane
     # tilts across (tilt: height gained per metre to the left) near its ends
     tilt = _ends_on_planes(edges, lanes, lane_edge, C, cg, cz, cs, ctot, nrm / hw[:, None], planes)
+    drive_pt = np.array([ln.drivable for ln in lanes])[cg]
     # and where a lane's end (on its node's plane) or a turn still stands through a
     # higher-ranked road, it goes under it (a dead-end service road ending on a Monaco bridge
     # stood 0.3 m through it)
     conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, lane_edge[cg], hw,
                                           lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0],
-                                          lower_only=True)
+                                          lower_only=True, only=drive_pt)
     # the pieces of sidewalks that lie on another road's carriageway are left out, and do not
     # hold the ground up either
     side = np.array([l.pedestrian_only for l in lanes])
@@ -1323,9 +1386,12 @@ def _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges,
     quads = shapely.polygons(np.stack([C[seg] + nrm[seg], C[seg + 1] + nrm[seg + 1], C[seg + 1] - nrm[seg + 1],
                                        C[seg] - nrm[seg], C[seg] + nrm[seg]], axis=1))   # (closed: 5x faster)
     cores = _lane_strips([lanes[k] for k in veh], inset=SIDEWALK_INTRUSION_M)
-    qi, vi = shapely.STRtree(cores).query(quads, predicate="intersects")
-    other = lane_edge[cg[seg[qi]]] != lane_edge[veh[vi]]
-    seg_keep[seg[qi[other]]] = False
+    shapely.prepare(cores)
+    qi, vi = shapely.STRtree(cores).query(quads)    # (by bounding box; a road's own lanes first
+    other = lane_edge[cg[seg[qi]]] != lane_edge[veh[vi]]    # out, then the geometry)
+    qi, vi = qi[other], vi[other]
+    hit = shapely.intersects(cores[vi], quads[qi])
+    seg_keep[seg[qi[hit]]] = False
     if jrings:
         jids = list(jrings)
         JP, jg = _concat([jrings[j] for j in jids])
@@ -1333,12 +1399,17 @@ def _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges,
         bad = ~shapely.is_valid(jp)         # (a self-crossing polygon: the area it encloses;
         jp[bad] = shapely.make_valid(jp[bad], method="structure", keep_collapsed=False)  # 10x faster)
         jcores = shapely.buffer(jp, -SIDEWALK_INTRUSION_M)
-        qi, ji = shapely.STRtree(jcores).query(quads, predicate="intersects")
+        shapely.prepare(jcores)
+        qi, ji = shapely.STRtree(jcores).query(quads)
         if len(qi):
-            jname = np.array(jids, dtype=object)[ji]
-            own = np.array([jn in (edges[ei].from_node, edges[ei].to_node)
-                            for jn, ei in zip(jname, lane_edge[cg[seg[qi]]])], dtype=bool)
-            seg_keep[seg[qi[~own]]] = False
+            num: dict = {j: k for k, j in enumerate(jids)}
+            fn = np.array([num.get(e.from_node, -1) for e in edges], dtype=np.int64)
+            tn = np.array([num.get(e.to_node, -1) for e in edges], dtype=np.int64)
+            ei = lane_edge[cg[seg[qi]]]
+            own = (fn[ei] == ji) | (tn[ei] == ji)
+            qi, ji = qi[~own], ji[~own]
+            hit = shapely.intersects(jcores[ji], quads[qi])
+            seg_keep[seg[qi[hit]]] = False
     # a point goes with its segments: kept if one of them is
     prev_ok = np.zeros(n, dtype=bool)
     next_ok = np.zeros(n, dtype=bool)
