@@ -1034,8 +1034,11 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
         z, _ = _onto_profiles(RP, rg, rz, pts, gB)
         return np.where(gB >= 0, z, np.nan)
 
+    # (roads with vehicle lanes: a footway's lanes on a road are left out, as sidewalks are)
+    vehicle_edge = np.bincount(lane_edge[higher[0]], minlength=len(edges)) > 0
     conform = lambda: _conform_to_higher_roads(edges, lanes, lane_edge, higher, RP, rg, rs, rz,   # noqa: E731
-                                               ref_e[rg], edge_hw[ref_e[rg]], onto_profile)
+                                               ref_e[rg], edge_hw[ref_e[rg]], onto_profile,
+                                               only=vehicle_edge[ref_e[rg]])
     conform()
     planes: dict = {}
     ends_moved = _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=edge_hw[ref_e], junctions=jrings,
