@@ -921,15 +921,47 @@ def _box_pairs(bmin, bmax, boxes, cell: float = 25.0):
     return i[ok], j[ok]
 
 
+def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None):
+    """For :func:`_conform_to_higher_roads`: the points (numbers) whose cross-section runs far
+    enough inside a vehicle lane of a higher-ranked road that their road does not meet at a
+    node, with that lane (number among the vehicle lanes) and its edge: the highest-ranked
+    one per point."""
+    veh, cores, rank, fn, tn, core_box = higher
+    none = np.zeros(0, np.int64)
+    sel = np.arange(len(P)) if only is None else np.flatnonzero(only)
+    if not len(sel):
+        return none, none, none
+    nrm = _normals_many(P, g)[sel] * halfw[sel, None]
+    lo, hi = P[sel] - nrm, P[sel] + nrm
+    # (pairs by bounding box, then the cheap tests, then the geometry)
+    qi, vi = _box_pairs(np.minimum(lo, hi), np.maximum(lo, hi), core_box)
+    A, B = own_edge[sel[qi]], lane_edge[veh[vi]]
+    ok = (rank[B] > rank[A]) & (fn[A] != fn[B]) & (fn[A] != tn[B]) & (tn[A] != fn[B]) & (tn[A] != tn[B])
+    qi, vi, B = qi[ok], vi[ok], B[ok]
+    if not len(qi):
+        return none, none, none
+    sections = shapely.linestrings(np.stack([lo[qi], hi[qi]], axis=1))
+    ok = shapely.intersects(cores[vi], sections)            # (prepared: fast)
+    qi, vi, B, sections = qi[ok], vi[ok], B[ok], sections[ok]
+    ok = shapely.length(shapely.intersection(sections, cores[vi])) >= CONFORM_MIN_OVERLAP_M
+    pi, vi, B = sel[qi[ok]], vi[ok], B[ok]
+    o = np.lexsort((rank[B], pi))                   # per point, the highest-ranked road
+    pi, vi, B = pi[o], vi[o], B[o]
+    top = np.r_[pi[1:] != pi[:-1], True]
+    return pi[top], vi[top], B[top]
+
+
 def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_edge, halfw, onto,
-                             lower_only: bool = False, only=None, fade: float = CONFORM_FADE_M) -> int:
+                             lower_only: bool = False, only=None, fade: float = CONFORM_FADE_M,
+                             cache: dict | None = None) -> int:
     """Heights ``z`` (in place) of the points `P` (lines `g`, arc length `s`) of roads that
     overlap a higher-ranked road without meeting it at a node: where a point's cross-section
     (``halfw`` either side) runs for :data:`CONFORM_MIN_OVERLAP_M` or more inside a vehicle
     lane of such a road (:func:`_higher_roads`), it takes that road's height, 2 cm under it
     (``onto(points, lane numbers, edge numbers)``); the move fades out along the line over
     ``fade`` metres either side. With ``lower_only``, points only move down; ``only`` (a
-    mask) limits the points looked at (not the fade). Two roads that
+    mask) limits the points looked at (not the fade); ``cache`` (a dict) keeps which points
+    overlap which roads for another call on the same points. Two roads that
     are more than :data:`CONFORM_MAX_M` apart in height anywhere they overlap are a bridge and
     the road under it: neither moves.
 
@@ -943,29 +975,14 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     veh, cores, rank, fn, tn, core_box = higher
     if not len(P) or not len(veh):
         return 0
-    sel = np.arange(len(P)) if only is None else np.flatnonzero(only)
-    if not len(sel):
-        return 0
-    nrm = _normals_many(P, g)[sel] * halfw[sel, None]
-    lo, hi = P[sel] - nrm, P[sel] + nrm
-    # (pairs by bounding box, then the cheap tests, then the geometry)
-    qi, vi = _box_pairs(np.minimum(lo, hi), np.maximum(lo, hi), core_box)
-    A, B = own_edge[sel[qi]], lane_edge[veh[vi]]
-    ok = (rank[B] > rank[A]) & (fn[A] != fn[B]) & (fn[A] != tn[B]) & (tn[A] != fn[B]) & (tn[A] != tn[B])
-    qi, vi, B = qi[ok], vi[ok], B[ok]
-    if not len(qi):
-        return 0
-    sections = shapely.linestrings(np.stack([lo[qi], hi[qi]], axis=1))
-    ok = shapely.intersects(cores[vi], sections)            # (prepared: fast)
-    qi, vi, B, sections = qi[ok], vi[ok], B[ok], sections[ok]
-    ok = shapely.length(shapely.intersection(sections, cores[vi])) >= CONFORM_MIN_OVERLAP_M
-    pi, vi, B = sel[qi[ok]], vi[ok], B[ok]
+    if cache is not None and "pairs" in cache:
+        pi, vi, B = cache["pairs"]
+    else:
+        pi, vi, B = _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only)
+        if cache is not None:
+            cache["pairs"] = (pi, vi, B)
     if not len(pi):
         return 0
-    o = np.lexsort((rank[B], pi))                   # per point, the highest-ranked road
-    pi, vi, B = pi[o], vi[o], B[o]
-    top = np.r_[pi[1:] != pi[:-1], True]
-    pi, vi, B = pi[top], vi[top], B[top]
     tz = onto(P[pi], veh[vi], B)
     fin = np.isfinite(tz)
     pi, B, tz = pi[fin], B[fin], tz[fin] - CONFORM_BELOW_M
@@ -1036,9 +1053,10 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
 
     # (roads with vehicle lanes: a footway's lanes on a road are left out, as sidewalks are)
     vehicle_edge = np.bincount(lane_edge[higher[0]], minlength=len(edges)) > 0
+    overlaps: dict = {}
     conform = lambda: _conform_to_higher_roads(edges, lanes, lane_edge, higher, RP, rg, rs, rz,   # noqa: E731
                                                ref_e[rg], edge_hw[ref_e[rg]], onto_profile,
-                                               only=vehicle_edge[ref_e[rg]])
+                                               only=vehicle_edge[ref_e[rg]], cache=overlaps)
     conform()
     planes: dict = {}
     ends_moved = _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=edge_hw[ref_e], junctions=jrings,
