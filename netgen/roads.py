@@ -251,20 +251,8 @@ def _top_surface_z(xy, parts, cell: float = 8.0):
     # triangle's bounding box (4 numbers a pair), before the triangle itself (10)
     fine = cell / 2.0
     bmin, bmax = T[:, :, :2].min(axis=1), T[:, :, :2].max(axis=1)
-    lo = np.floor(bmin / fine).astype(np.int64)
-    hi = np.floor(bmax / fine).astype(np.int64)
-    nx, ny = hi[:, 0] - lo[:, 0] + 1, hi[:, 1] - lo[:, 1] + 1
-    nc = nx * ny
-    tri = np.repeat(np.arange(len(T)), nc)
-    k = np.arange(nc.sum()) - np.repeat(np.cumsum(nc) - nc, nc)
-    ckey = _keys(np.column_stack([lo[tri, 0] + k % nx[tri], lo[tri, 1] + k // nx[tri]]))
-    order = np.argsort(ckey, kind="stable")
-    ckey, tri = ckey[order], tri[order]
-    pkey = _cell_keys(xy, fine)
-    first, last = np.searchsorted(ckey, pkey, "left"), np.searchsorted(ckey, pkey, "right")
-    cnt = last - first
-    pi = np.repeat(np.arange(len(xy)), cnt)
-    ti = tri[np.repeat(first, cnt) + np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)]
+    pi, ti = _cell_pairs(np.floor(bmin / fine).astype(np.int64), np.floor(bmax / fine).astype(np.int64),
+                         _cell_keys(xy, fine))
     x, y = xy[pi, 0], xy[pi, 1]
     eps = 1e-6
     inb = (x >= bmin[ti, 0] - eps) & (x <= bmax[ti, 0] + eps) & (y >= bmin[ti, 1] - eps) & (y <= bmax[ti, 1] + eps)
@@ -281,6 +269,22 @@ def _top_surface_z(xy, parts, cell: float = 8.0):
 
 
 _KEY_BIAS = 1 << 30
+
+
+def _cell_pairs(lo, hi, qkey):
+    """Pairs (q, b), in the order of q: query q's cell (key ``qkey[q]``, :func:`_keys`) is one of
+    the cells ``lo[b] .. hi[b]`` (integer cell ranges, both ends included) of box b."""
+    nx, ny = hi[:, 0] - lo[:, 0] + 1, hi[:, 1] - lo[:, 1] + 1
+    nc = nx * ny
+    b = np.repeat(np.arange(len(lo)), nc)
+    k = np.arange(nc.sum()) - np.repeat(np.cumsum(nc) - nc, nc)
+    ckey = _keys(np.column_stack([lo[b, 0] + k % nx[b], lo[b, 1] + k // nx[b]]))
+    order = np.argsort(ckey, kind="stable")
+    ckey, b = ckey[order], b[order]
+    first, last = np.searchsorted(ckey, qkey, "left"), np.searchsorted(ckey, qkey, "right")
+    cnt = last - first
+    q = np.repeat(np.arange(len(qkey)), cnt)
+    return q, b[np.repeat(first, cnt) + np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)]
 
 
 def _keys(ij):
@@ -903,19 +907,8 @@ def _box_pairs(bmin, bmax, boxes, cell: float = 25.0):
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     grow = float(np.max(bmax - bmin)) / 2.0
     cen = _keys(np.floor((bmin + bmax) / 2.0 / cell).astype(np.int64))
-    lo = np.floor((boxes[:, :2] - grow) / cell).astype(np.int64)
-    hi = np.floor((boxes[:, 2:] + grow) / cell).astype(np.int64)
-    nx, ny = hi[:, 0] - lo[:, 0] + 1, hi[:, 1] - lo[:, 1] + 1
-    nc = nx * ny
-    j = np.repeat(np.arange(len(boxes)), nc)
-    k = np.arange(nc.sum()) - np.repeat(np.cumsum(nc) - nc, nc)
-    ckey = _keys(np.column_stack([lo[j, 0] + k % nx[j], lo[j, 1] + k // nx[j]]))
-    order = np.argsort(ckey, kind="stable")
-    ckey, j = ckey[order], j[order]
-    first, last = np.searchsorted(ckey, cen, "left"), np.searchsorted(ckey, cen, "right")
-    cnt = last - first
-    i = np.repeat(np.arange(len(bmin)), cnt)
-    j = j[np.repeat(first, cnt) + np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)]
+    i, j = _cell_pairs(np.floor((boxes[:, :2] - grow) / cell).astype(np.int64),
+                       np.floor((boxes[:, 2:] + grow) / cell).astype(np.int64), cen)
     ok = (bmin[i, 0] <= boxes[j, 2]) & (bmax[i, 0] >= boxes[j, 0]) & (bmin[i, 1] <= boxes[j, 3]) & \
          (bmax[i, 1] >= boxes[j, 1])
     return i[ok], j[ok]
