@@ -938,6 +938,8 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None):
     qi, vi, B, sections = qi[ok], vi[ok], B[ok], sections[ok]
     ok = shapely.length(shapely.intersection(sections, cores[vi])) >= CONFORM_MIN_OVERLAP_M
     pi, vi, B = sel[qi[ok]], vi[ok], B[ok]
+    if not len(pi):
+        return none, none, none
     o = np.lexsort((rank[B], pi))                   # per point, the highest-ranked road
     pi, vi, B = pi[o], vi[o], B[o]
     top = np.r_[pi[1:] != pi[:-1], True]
