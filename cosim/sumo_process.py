@@ -287,7 +287,15 @@ def _reap(proc, conn, wait: bool) -> bool:
         conn.close()
     except Exception:
         pass
+    _remove_tmp_of(proc)
     return True
+
+
+def _remove_tmp_of(proc) -> None:
+    """A worker that has ended: its SUMO folder goes too (killed, it left it behind)."""
+    from cosim.traffic import SumoTraffic
+
+    SumoTraffic.remove_tmp_of(proc.pid)
 
 
 class _Remote:
@@ -393,6 +401,8 @@ class TrafficProcess(Component):
                     code = self._proc.wait(2.0)
                 except subprocess.TimeoutExpired:
                     self._proc.kill()
+                    self._proc.wait(5.0)
+                _remove_tmp_of(self._proc)
             self._proc = None
             self._inflight.clear()
             raise SimulationError(f"SUMO's worker process ended unexpectedly (exit code {code}); "

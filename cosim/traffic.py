@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import glob
 import logging
 import math
 import os
@@ -57,6 +58,7 @@ from .component import Component
 log = logging.getLogger(__name__)
 
 EGO_ID = "ego"
+TMP_PREFIX = "cosim-sumo-"      # SUMO's folder for its logs: <tmp>/cosim-sumo-<pid>-*
 PROBE_ID = "cosim_probe"
 CONTEXT_MARGIN = 20.0   # m: front-bumper anchors vs centre distances (half a bus + half the ego)
 DEFAULT_CONTEXT_RADIUS = 150.0
@@ -305,7 +307,7 @@ class SumoTraffic(Component):
         for k in ("SUMO_HOME", "PROJ_DATA", "PROJ_LIB"):
             if k in env:
                 os.environ.setdefault(k, env[k])
-        self._tmpdir = tempfile.mkdtemp(prefix="cosim-sumo-")
+        self._tmpdir = tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{os.getpid()}-")   # (see remove_tmp_of)
         err_log = os.path.join(self._tmpdir, "sumo-errors.log")
         binary = os.path.join(home, "bin", "sumo-gui" if self.gui else "sumo")
         cmd = [binary, "-n", str(self.net_file)]
@@ -391,6 +393,13 @@ class SumoTraffic(Component):
                 self.teardown()
         except Exception:
             pass
+
+    @staticmethod
+    def remove_tmp_of(pid: int) -> None:
+        """Remove the folders of a process that ran a SumoTraffic and has ended: a worker that
+        was killed, or crashed, never removed its own."""
+        for d in glob.glob(os.path.join(tempfile.gettempdir(), f"{TMP_PREFIX}{int(pid)}-*")):
+            shutil.rmtree(d, ignore_errors=True)
 
     def _cleanup_tmp(self):
         if self._tmpdir:

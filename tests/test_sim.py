@@ -284,6 +284,9 @@ def test_sumo_worker_crash_is_survived(motorway_world):
     finally:
         sim.teardown()
     assert summary.sumo_restarts == 1 and "started again" in summary.notes[-1]
+    import glob
+    import tempfile
+    assert not glob.glob(os.path.join(tempfile.gettempdir(), f"cosim-sumo-{old}-*"))   # (its folder removed)
     assert "restarted after a crash 1 time(s)" in summary.line()
     assert summary.distance_m > 300 and summary.ego_collisions == 0
     assert gap < 3.0                              # SUMO has the ego again

@@ -182,7 +182,9 @@ def test_worker_errors_are_one_line(net, tmp_path):
     t.setup()
     try:
         t.step()
-        os.kill(t._proc.pid, signal.SIGKILL)
+        pid = t._proc.pid
+        assert _tmp_of(pid), "the worker's SUMO keeps its logs in a folder named by its process"
+        os.kill(pid, signal.SIGKILL)
         with pytest.raises(SimulationError) as ei:
             for _ in range(3):
                 t.step()
@@ -191,6 +193,14 @@ def test_worker_errors_are_one_line(net, tmp_path):
         assert "\n" not in msg and "worker process ended unexpectedly" in msg and "-9" in msg
     finally:
         t.teardown()
+    assert not _tmp_of(pid), "a killed worker's folder is removed by the process that started it"
+
+
+def _tmp_of(pid):
+    import glob
+    import tempfile
+
+    return glob.glob(os.path.join(tempfile.gettempdir(), f"cosim-sumo-{pid}-*"))
 
 
 def _busy_lane(s):
