@@ -29,7 +29,9 @@ junction on odd geometry can) gets a strip of its own, element ``junction_lane``
 (:func:`junction_gaps`).
 
 Sidewalk lanes are left out where they lie on another road's vehicle lane or junction
-(:func:`_sidewalks_off_other_roads`).
+(:func:`_sidewalks_off_other_roads`). A road that overlaps a higher-ranked one without meeting
+it at a node (an untagged bridge or tunnel, two carriageways mapped too close) takes that
+road's height there, just under it (:func:`_conform_to_higher_roads`).
 
 Mesh classes: ``asphalt`` (vehicle lanes, junctions), ``sidewalk`` (pedestrian-only
 lanes and walking areas, 2 cm higher), ``rail`` (train-only tracks) and ``marking`` (lane lines and zebra stripes, visual
