@@ -1078,18 +1078,17 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     # each lane's ends onto its nodes' planes, across its width too: cz moves, and the lane
     # tilts across (tilt: height gained per metre to the left) near its ends
     tilt = _ends_on_planes(edges, lanes, lane_edge, C, cg, cz, cs, ctot, nrm / hw[:, None], planes)
-    drive_pt = np.array([ln.drivable for ln in lanes])[cg]
+    side = np.array([l.pedestrian_only for l in lanes])
+    rail = np.array([bool(l.allowed) and l.allowed <= RAIL_CLASSES for l in lanes])
+    drive = np.array([l.drivable for l in lanes])
     # and where a lane's end (on its node's plane) or a turn still stands through a
     # higher-ranked road, it goes under it (a dead-end service road ending on a Monaco bridge
     # stood 0.3 m through it)
     conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, lane_edge[cg], hw,
                                           lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0],
-                                          lower_only=True, only=drive_pt)
+                                          lower_only=True, only=drive[cg])
     # the pieces of sidewalks that lie on another road's carriageway are left out, and do not
     # hold the ground up either
-    side = np.array([l.pedestrian_only for l in lanes])
-    rail = np.array([bool(l.allowed) and l.allowed <= RAIL_CLASSES for l in lanes])
-    drive = np.array([l.drivable for l in lanes])
     seg_keep, pt_keep = _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges, jrings)
     # support points for levelling and for junction heights: centrelines and lane corners
     Ck, czk, hwk, nk = C[pt_keep], cz[pt_keep], hw[pt_keep], nrm[pt_keep]

@@ -885,17 +885,10 @@ def test_levelling_looks_up_only_nodes_near_roads_with_the_same_result(tmp_path)
     from scipy.spatial import cKDTree
 
     from netgen import terrain
-    from netgen.roads import build_roads
     from netgen.terrain import TerrainGrid, level_under_roads
 
     osm, frame, chunks, bbox, grid = _monaco_inputs()
-    w = build_world(WorldConfig(osm=str(osm), dem=[str(shared_file("dem/N43E007.hgt"))],
-                                center=(43.7384, 7.4246), chunks=1, out=str(tmp_path / "w"),
-                                cache_dir=str(tmp_path / "c")))
-    net = read_net(tmp_path / "w" / w["net_file"], internal=False)
-    sup = {}
-    build_roads(net, grid.sample, 5.0, on_support=lambda p, h, c: sup.update(p=p, h=h, c=c))
-    pts, hw = sup["p"], sup["h"]
+    pts, hw, _ = _monaco_support(tmp_path, osm, grid, 5.0)
     g = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, grid.z.copy())
     figures = level_under_roads(g, pts, hw, clear=False)
     # every node, as before the shortcut (node positions as the levelling computes them)
@@ -929,23 +922,30 @@ def test_levelling_looks_up_only_nodes_near_roads_with_the_same_result(tmp_path)
     assert len(terrain._nodes_near(grid, pts, reach)) < z.size          # a shortcut at all
 
 
+def _monaco_support(tmp_path, osm, grid, step):
+    """The roads' levelling support (points, half widths, car mask) of Monaco's network, built
+    into tmp_path, meshed on the natural terrain `grid` every `step` metres."""
+    from netgen.roads import build_roads
+
+    w = build_world(WorldConfig(osm=str(osm), dem=[str(shared_file("dem/N43E007.hgt"))],
+                                center=(43.7384, 7.4246), chunks=1, out=str(tmp_path / "w"),
+                                cache_dir=str(tmp_path / "c")))
+    net = read_net(tmp_path / "w" / w["net_file"], internal=False)
+    sup = {}
+    build_roads(net, grid.sample, step, on_support=lambda p, h, c: sup.update(p=p, h=h, c=c))
+    return sup["p"], sup["h"], sup["c"]
+
+
 def test_no_road_point_lies_under_the_levelled_terrain(tmp_path):
     """After levelling, the terrain (bilinear, and the triangles of Bullet's heightfield) lies
     at least ROAD_SINK_M under every point where cars drive (lanes, junctions; Monaco's SRTM
     terrain and network, on a 10 m grid, where the nodes' nearest-road heights alone left the
     surface above some of them), and the pass lowers nodes only (and none for points beyond the
     grid, where its border stands for the ground)."""
-    from netgen.roads import build_roads
     from netgen.terrain import ROAD_SINK_M, TerrainGrid, clear_road_points, level_under_roads
 
     osm, frame, chunks, bbox, grid = _monaco_inputs(spacing=10.0)
-    w = build_world(WorldConfig(osm=str(osm), dem=[str(shared_file("dem/N43E007.hgt"))],
-                                center=(43.7384, 7.4246), chunks=1, out=str(tmp_path / "w"),
-                                cache_dir=str(tmp_path / "c")))
-    net = read_net(tmp_path / "w" / w["net_file"], internal=False)
-    sup = {}
-    build_roads(net, grid.sample, 2.5, on_support=lambda p, h, c: sup.update(p=p, h=h, c=c))
-    pts, hw, car = sup["p"], sup["h"], sup["c"]
+    pts, hw, car = _monaco_support(tmp_path, osm, grid, 2.5)
     assert 0.3 < car.mean() < 0.9          # (sidewalks and walking areas are not cleared)
     g = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, grid.z.copy())
     level_under_roads(g, pts, hw, clear=False)
