@@ -131,7 +131,7 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
 
     wb_half = sim.vehicle.spec.wheelbase / 2.0
     k_car = 1.0 / float(np.hypot(min_turn_radius(), wb_half))     # the footprint centre's tightest circle
-    lat, cruise_err, rows, worst = [], [], [], []
+    lat, cruise_err, rows, worst, speed_worst = [], [], [], [], []
     tight, recent = [], []
     off_road = 0
     off_events, collisions, n_coll = [], [], 0
@@ -171,6 +171,9 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
                     settled = True
                 if settled:
                     cruise_err.append(ego.speed - speed)
+                    if abs(ego.speed - speed) > 0.3:
+                        speed_worst.append((round(ego.speed - speed, 2), round(ego.t, 1), ego.lane,
+                                            round(ego.x, 1), round(ego.y, 1), round(ego.z, 1)))
             else:
                 settled = False
             rows.append((ego.t, ego.x, ego.y, ego.z, ego.speed, ap.reason, settled))
@@ -228,6 +231,7 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
         "reroutes": reroutes, "arrived": summary.arrived,
         "near_miss_events": [e for e in stats.events if e[1] == "near miss"][:10],
         "lat_worst": sorted(worst, reverse=True)[:5],
+        "speed_worst": sorted(speed_worst, key=lambda w: -abs(w[0]))[:5],
         "lat_clusters": _clusters(worst, swaps, path_changes),
         "network_swaps": swaps, "path_changes": len(path_changes),
         "off_road_share": round(off_road / max(1, len(rows)), 5), "off_road_events": off_events,

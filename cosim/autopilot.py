@@ -64,7 +64,7 @@ STANDSTILL_GAP_M = 4.0     # bumper to bumper when stopped behind a vehicle
 PERSON_GAP_M = 4.0         # stop this far before a pedestrian in the path
 COMFORT_DECEL = 2.0        # m/s2 used to plan stops and slow-downs
 YELLOW_DECEL = 3.5         # m/s2: at yellow, stop only if this deceleration suffices
-STOP_LINE_MARGIN_M = 1.0   # front bumper this far before the stop line
+STOP_LINE_MARGIN_M = 2.0   # front bumper this far before the stop line
 CROSSING_MARGIN_M = 1.5    # front bumper this far before a crossing's edge
 CROSSING_APPROACH_MPS = 3.0  # speed over a crossing where people wait at its ends
 STOP_SIGN_HOLD_S = 1.2     # full stop at a stop sign at least this long (>= 1 s)

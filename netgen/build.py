@@ -352,7 +352,8 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
                                                          buildings, streams))
             with T.stage("roads"):  # the levelling support: levelled here or in cosim-layers
                 roads = build_roads(net, natural.sample, q["road_step_m"],
-                                    on_support=lambda pts, hw, car: streams.level(pts, hw, car, T, buildings.lift))
+                                    on_support=lambda pts, hw, car, tris: streams.level(pts, hw, car, tris, T,
+                                                                                   buildings.lift))
             T.t["roads"] = round(T.t["roads"] - T.t.get("terrain_level", 0.0), 3)
             nc.running()
             with T.stage("road_tiles_plan"):
@@ -658,21 +659,21 @@ class _Streams:
         return out
 
     # -- sharing -----------------------------------------------------------------------------
-    def level(self, pts, hw, car, T: Timer, then=None) -> None:
+    def level(self, pts, hw, car, tris, T: Timer, then=None) -> None:
         """The roads' levelling support is known. If cosim-layers is already waiting for it
         (it claimed the levelling, :meth:`level_if_free`), send it there and go on meshing;
         else level here, now (as without children), so that cosim-layers, busy with the
         scenery, finds the terrain ready. `then` runs before the others are told."""
         if self.parallel and self.next_index("level"):
-            self._sup_w.send((pts, hw, car))
+            self._sup_w.send((pts, hw, car, tris))
             return
-        self._level(pts, hw, car, T, then)
+        self._level(pts, hw, car, tris, T, then)
 
-    def _level(self, pts, hw, car, T: Timer, then) -> None:
+    def _level(self, pts, hw, car, tris, T: Timer, then) -> None:
         from .terrain import level_under_roads
 
         with T.stage("terrain_level"):
-            self.lev = level_under_roads(self.grid, pts, hw, clear=car)
+            self.lev = level_under_roads(self.grid, pts, hw, clear=car, tris=tris)
         if self.parallel:       # hand the heights to the others (shared memory, allocated before the forks)
             np.frombuffer(self._z, dtype=np.float64)[:] = self.grid.z.ravel()
             if then is not None:

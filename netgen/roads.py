@@ -98,6 +98,7 @@ class RoadGeometry:
     support_pts: np.ndarray = None                 # (n, 3) road surface points for levelling
     support_hw: np.ndarray = None                  # (n,) ground-is-road radius at each point
     support_car: np.ndarray = None                 # (n,) True where cars drive (lanes, junctions)
+    support_tris: np.ndarray = None                # (m, 3) the drivable surface's triangles over support_pts
     stats: dict = field(default_factory=dict)
     net: object = None
 
@@ -1098,6 +1099,15 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     sup_hw = [hwk, np.zeros(len(corners))]
     car_k = ~(side | rail)[cg[pt_keep]]
     sup_car = [car_k, np.concatenate([car_k, car_k])]
+    # the drivable surface's triangles over the support points (the lanes' strips as
+    # `_strips` makes them, the junctions' and gap lanes' meshes below): the terrain is cleared
+    # under the whole surface, not only under its points
+    nk_ = len(Ck)
+    kept = np.flatnonzero(pt_keep)
+    i = np.flatnonzero((kept[1:] == kept[:-1] + 1) & (cg[kept[1:]] == cg[kept[:-1]]) & car_k[:-1])
+    L0, R0 = nk_ + i, 2 * nk_ + i
+    sup_tris = [np.column_stack([L0, R0, L0 + 1]), np.column_stack([R0, R0 + 1, L0 + 1])]
+    sup_n = [3 * nk_]                      # (points in `sup` so far: the next block's offset)
     tree = cKDTree(np.vstack(sup)[:, :2], balanced_tree=False, compact_nodes=False)   # (3x faster to build)
     supz = np.concatenate([czk, czk + tk, czk - tk])
 
@@ -1229,9 +1239,12 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
                 sup.append(np.column_stack([Q[ok], qz[ok]]))
                 sup_hw.append(np.full(int(ok.sum()), 0.5 * JUNCTION_SUPPORT_STEP))
                 sup_car.append(np.ones(int(ok.sum()), dtype=bool))
+                sup_n[0] += int(ok.sum())
             sup.append(V)
             sup_hw.append(np.zeros(len(V)))
             sup_car.append(np.ones(len(V), dtype=bool))
+            sup_tris.append(F + sup_n[0])
+            sup_n[0] += len(V)
         return part
 
     junction_part = polygon_part("asphalt")
@@ -1257,11 +1270,19 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
         sup.append(np.column_stack([G, gz]))
         sup_hw.append(ghw)
         sup_car.append(np.ones(len(G), dtype=bool))
+        sup_n[0] += len(G)
+        sup.append(v)
+        sup_hw.append(np.zeros(len(v)))
+        sup_car.append(np.ones(len(v), dtype=bool))
+        sup_tris.append(f + sup_n[0])
+        sup_n[0] += len(v)
     geo.support_pts = np.vstack(sup)
     geo.support_hw = np.concatenate(sup_hw)
     geo.support_car = np.concatenate(sup_car)
+    geo.support_tris = np.vstack(sup_tris).astype(np.int64)
+    assert sup_n[0] == len(geo.support_pts)
     if on_support is not None:
-        on_support(geo.support_pts, geo.support_hw, geo.support_car)
+        on_support(geo.support_pts, geo.support_hw, geo.support_car, geo.support_tris)
 
     # 4. lanes as strips
     ids = [lanes[k].id for k in range(len(lanes))]

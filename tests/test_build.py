@@ -888,7 +888,7 @@ def test_levelling_looks_up_only_nodes_near_roads_with_the_same_result(tmp_path)
     from netgen.terrain import TerrainGrid, level_under_roads
 
     osm, frame, chunks, bbox, grid = _monaco_inputs()
-    pts, hw, _ = _monaco_support(tmp_path, osm, grid, 5.0)
+    pts, hw, _, _ = _monaco_support(tmp_path, osm, grid, 5.0)
     g = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, grid.z.copy())
     figures = level_under_roads(g, pts, hw, clear=False)
     # every node, as before the shortcut (node positions as the levelling computes them)
@@ -932,8 +932,8 @@ def _monaco_support(tmp_path, osm, grid, step):
                                 cache_dir=str(tmp_path / "c")))
     net = read_net(tmp_path / "w" / w["net_file"], internal=False)
     sup = {}
-    build_roads(net, grid.sample, step, on_support=lambda p, h, c: sup.update(p=p, h=h, c=c))
-    return sup["p"], sup["h"], sup["c"]
+    build_roads(net, grid.sample, step, on_support=lambda p, h, c, t: sup.update(p=p, h=h, c=c, t=t))
+    return sup["p"], sup["h"], sup["c"], sup["t"]
 
 
 def test_no_road_point_lies_under_the_levelled_terrain(tmp_path):
@@ -945,7 +945,7 @@ def test_no_road_point_lies_under_the_levelled_terrain(tmp_path):
     from netgen.terrain import ROAD_SINK_M, TerrainGrid, clear_road_points, level_under_roads
 
     osm, frame, chunks, bbox, grid = _monaco_inputs(spacing=10.0)
-    pts, hw, car = _monaco_support(tmp_path, osm, grid, 2.5)
+    pts, hw, car, tris = _monaco_support(tmp_path, osm, grid, 2.5)
     assert 0.3 < car.mean() < 0.9          # (sidewalks and walking areas are not cleared)
     g = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, grid.z.copy())
     level_under_roads(g, pts, hw, clear=False)
@@ -966,6 +966,17 @@ def test_no_road_point_lies_under_the_levelled_terrain(tmp_path):
     g2 = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, grid.z.copy())
     assert level_under_roads(g2, pts, hw, clear=car)["lowered_nodes"] == lowered
     assert np.array_equal(g2.z, g.z)
+    # between the points: the whole drivable surface (its triangles come with the support)
+    assert car[tris].all()
+    S = _surface_samples(pts, tris, 6, np.random.default_rng(0))
+    S = S[(S[:, 0] >= g.xmin) & (S[:, 0] <= g.xmax) & (S[:, 1] >= g.ymin) & (S[:, 1] <= g.ymax)]
+    between = g2.sample_tri(S[:, 0], S[:, 1]) - (S[:, 2] - ROAD_SINK_M)
+    # (the points alone leave ridges between them)
+    assert between.max() > 0.1 and (between > 0.0).sum() > 50, (between.max(), (between > 0.0).sum())
+    g3 = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, grid.z.copy())
+    level_under_roads(g3, pts, hw, clear=car, tris=tris)
+    assert (g3.z <= g2.z + 1e-9).all()
+    assert (g3.sample_tri(S[:, 0], S[:, 1]) - (S[:, 2] - ROAD_SINK_M)).max() <= 1e-6
 
 
 def test_levelling_keeps_the_terrain_under_a_street_below_another():
@@ -990,6 +1001,51 @@ def test_levelling_keeps_the_terrain_under_a_street_below_another():
     level_under_roads(g2, steep, np.full(len(y), 3.0))
     along = g2.sample_tri(np.zeros(33), np.arange(-40.0, 40.01, 2.5))
     assert np.allclose(along, 0.2 * np.arange(-40.0, 40.01, 2.5) - ROAD_SINK_M, atol=1e-6)
+
+
+def _surface_samples(pts, tris, per_tri: int, rng):
+    """Random points (k, 3) on each triangle of the surface `pts`[`tris`]."""
+    u, v = rng.random((2, len(tris), per_tri))
+    flip = u + v > 1.0
+    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
+    A, B, C = (pts[tris[:, k]][:, None, :] for k in range(3))
+    return (A + u[..., None] * (B - A) + v[..., None] * (C - A)).reshape(-1, 3)
+
+
+def test_terrain_is_cleared_under_the_whole_surface_not_only_its_points():
+    """A bumpy terrain on a 10 m grid under a winding, climbing road strip meshed every 2.5 m
+    (as the lanes are). Clearing the strip's vertices alone leaves the grid's ridges through
+    the surface between them; with the strip's triangles (its edges' crossings with the grid's
+    lines and anti-diagonals, the nodes inside it), no point of the surface has terrain less
+    than ROAD_SINK_M under it."""
+    from netgen.terrain import ROAD_SINK_M, TerrainGrid, clear_road_points, surface_check_points
+
+    rng = np.random.default_rng(3)
+    s = np.arange(0.0, 300.0, 2.5)
+    C = np.column_stack([s - 150.0, 40.0 * np.sin(s / 45.0)])
+    d = np.gradient(C, axis=0)
+    n = np.column_stack([-d[:, 1], d[:, 0]]) / np.hypot(d[:, 0], d[:, 1])[:, None] * 3.5
+    z = 0.12 * s + 1.5 * np.sin(s / 20.0)
+    tilt = 0.04 * np.cos(s / 30.0) * 3.5
+    m = len(s)
+    pts = np.vstack([np.column_stack([C + n, z + tilt]), np.column_stack([C - n, z - tilt])])
+    i = np.arange(m - 1)
+    tris = np.vstack([np.column_stack([i, m + i, i + 1]), np.column_stack([m + i, m + i + 1, i + 1])])
+    zg = np.interp(np.arange(-200.0, 200.01, 10.0), s - 150.0, z)[None, :] + rng.normal(0.0, 1.5, (21, 41))
+    P = _surface_samples(pts, tris, 40, rng)
+
+    def above(g):
+        return (g.sample_tri(P[:, 0], P[:, 1]) - (P[:, 2] - ROAD_SINK_M)).max()
+
+    g1 = TerrainGrid(-200.0, -100.0, 10.0, zg.copy())
+    clear_road_points(g1, pts)
+    assert above(g1) > 0.1                                  # (the vertices alone leave ridges)
+    g2 = TerrainGrid(-200.0, -100.0, 10.0, zg.copy())
+    Q = surface_check_points(g2, pts, tris)
+    assert len(Q) > len(tris)
+    clear_road_points(g2, np.vstack([pts, Q]))
+    assert above(g2) <= 1e-6, above(g2)
+    assert (g2.z <= zg).all()
 
 
 def test_prepared_building_files_are_the_plain_writers_files(tmp_path):
