@@ -73,6 +73,7 @@ NEAR_MISS_TTC_S = 1.5
 NEAR_MISS_GAP_M = 2.0
 SENSE_RANGE_M = 80.0       # obstacles on the path are considered up to here
 CROSS_LANE_MARGIN_M = 3.5  # a crossing vehicle's road may have a lane nearer than its own
+LANE_CONFLICT_MARGIN_M = 0.5  # a junction lane over the path: clear of the two bodies by this
 HARD_DECEL = 6.0           # m/s2: the car's firm braking (what "can still stop before it" means)
 EXPECT_AHEAD_M = 40.0      # reads are asked ahead (_expect) this far beyond where they are needed
 OSM_SIGN_RADIUS_M = 20.0   # an OSM stop sign belongs to an approach whose stop line is this close
@@ -156,6 +157,7 @@ class Autopilot:
         self._foes: dict = {}
         self._internal_foes: dict = {}
         self._internal_foes_all: dict = {}
+        self._lane_shapes: dict = {}      # junction lane -> (centreline points, arc lengths)
         self._net_generation = getattr(getattr(sim, "traffic", None), "_generation", 0)
         self._near_miss_until = -1.0
         self._moving = False
@@ -174,6 +176,7 @@ class Autopilot:
             self._net_generation = gen
             self._incoming = None
             self._foes, self._internal_foes, self._internal_foes_all = {}, {}, {}
+            self._lane_shapes = {}
             self._stop_state.clear()
             self._yellow.clear()
             self._path = None
@@ -279,7 +282,7 @@ class Autopilot:
         body_actor = {}
         mirror = getattr(self.sim, "mirror", None)
         if mirror is not None:
-            body_actor = {b: a for a, (b, _) in mirror.active.items()}
+            body_actor = mirror.body_actors()
         if self.lidar is not None:
             from .sensors import corridor_obstacle
 
@@ -334,6 +337,8 @@ class Autopilot:
                 if ln and not ln.startswith(":"):
                     e = ln.rsplit("_", 1)[0]
                     reads += [(edge_p + ("getToJunction",), (e,)), (edge_p + ("getFromJunction",), (e,))]
+                elif ln and ln not in self._lane_shapes:
+                    reads.append((lane_p + ("getShape",), (ln,)))
         front = s_here + self.front
         horizon = max(60.0, v * v / (2 * COMFORT_DECEL) + 30.0) + EXPECT_AHEAD_M
         inc = self._incoming if self._incoming is not None else {}
@@ -440,6 +445,15 @@ class Autopilot:
                         lane = None
                 if lane:
                     on_path = lane in mine or lane.rsplit("_", 1)[0] in my_edges
+                    if not on_path and lane not in foes and lane.startswith(":") and not person:
+                        # a junction lane that SUMO does not make a foe of the path's but that
+                        # runs over it (two junctions drawn into each other, a turn drawn across
+                        # the end of the road in: Monaco): timed along its own lane
+                        hit = self._lane_conflict(path, lane, actors, i, s_here, v_ego)
+                        if hit is not None:
+                            if best is None or hit.gap < best.gap:
+                                best = hit
+                            continue
                     if not on_path:
                         if lane in foes:
                             crossing = True
@@ -499,6 +513,66 @@ class Autopilot:
             if best is None or gap < best.gap:
                 best = Lead(max(0.0, gap), lead_v, "person" if person else "vehicle", "actors", str(actors.ids[i]))
         return best
+
+    def _lane_shape(self, lane: str):
+        """A lane's centreline every metre or less, and the arc length at each point (cached)."""
+        got = self._lane_shapes.get(lane)
+        if got is None:
+            try:
+                P = np.asarray(self.sim.traffic.sumo.lane.getShape(lane), dtype=float)[:, :2]
+            except Exception:
+                P = np.zeros((0, 2))
+            if len(P) >= 2:
+                seg = np.hypot(*np.diff(P, axis=0).T)
+                a = np.concatenate([[0.0], np.cumsum(seg)])
+                u = np.linspace(0.0, a[-1], max(2, int(np.ceil(a[-1])) + 1))
+                got = (np.column_stack([np.interp(u, a, P[:, 0]), np.interp(u, a, P[:, 1])]), u)
+            else:
+                got = (np.zeros((0, 2)), np.zeros(0))
+            self._lane_shapes[lane] = got
+        return got
+
+    def _lane_conflict(self, path, lane: str, actors, i: int, s_here: float, v_ego: float) -> Lead | None:
+        """The vehicle `i` on junction lane `lane`, if that lane passes within the two bodies'
+        half widths (+ LANE_CONFLICT_MARGIN_M) of the path ahead and the vehicle is there while
+        the car would be: a stop before that stretch. Its times in and out come from its
+        distance along its lane and its speed."""
+        P, arc = self._lane_shape(lane)
+        if not len(P):
+            return None
+        s1 = s_here + SENSE_RANGE_M
+        s, off = path.project_many(P[:, 0], P[:, 1], s_here - 5.0, s1)
+        W, L = float(actors.width[i]), float(actors.length[i])
+        hit = np.isfinite(s) & (np.abs(off) < 0.5 * (self.width + W) + LANE_CONFLICT_MARGIN_M) & (s < s1 - 1.0)
+        if not hit.any():
+            return None
+        a0, a1, p0 = float(arc[hit].min()), float(arc[hit].max()), float(s[hit].min())
+        yaw = float(actors.yaw[i])
+        fx = float(actors.x[i]) + 0.5 * L * math.cos(yaw)
+        fy = float(actors.y[i]) + 0.5 * L * math.sin(yaw)
+        pos = float(arc[int(np.argmin((P[:, 0] - fx) ** 2 + (P[:, 1] - fy) ** 2))])
+        if pos - L > a1:
+            return None                                   # its back is past the stretch
+        sp = float(actors.speed[i])
+        if sp < 0.5:
+            if pos < a0:
+                return None                               # standing before it
+            t_in, t_out = 0.0, float("inf")
+        else:
+            t_in, t_out = max(a0 - pos, 0.0) / sp, (a1 - pos + L) / sp
+        gap = p0 - s_here - self.front
+        if gap < -self.length:
+            return None                                   # the stretch is behind the car
+        if gap > 0.0:
+            if t_in > 6.0:
+                return None
+            if gap < v_ego * v_ego / (2.0 * HARD_DECEL) and t_in > 0.0:
+                return None           # past the point of no return, and not there yet: go on
+            t_arr = gap / v_ego
+            t_pass = (gap + self.length + 2.0) / max(v_ego, 0.5)
+            if t_arr > t_out + 1.0 or t_pass < t_in - 0.5:
+                return None           # gone before the car gets there, or comes after it
+        return Lead(max(0.0, gap - LANE_CONFLICT_MARGIN_M), 0.0, "vehicle", "actors", str(actors.ids[i]))
 
     @staticmethod
     def _at_path_junction(tr, lane: str, junctions: set) -> bool:

@@ -7,6 +7,13 @@ world's ground and pitch from the ground's slope along the heading. Static bodie
 physics step almost nothing (no dynamics; static-static pairs are not tested), so the ego
 meets real obstacles while the step stays cheap, as SMARTS does with its kinematic traffic.
 
+A long vehicle (a bus, a truck: longer than LONG_M) is a chain of boxes of at most SEGMENT_M
+that follow the path its front bumper has taken, the way SUMO moves it: its back follows the
+same lane, LENGTH behind the front. One rigid box along SUMO's front-to-back chord cuts the
+inside of a bend by about L^2 / 8R (2.3 m for a 12 m bus through a 8 m radius turn): Monaco's
+buses swept it over cars waiting at the stop line of the next lane. The chain's front is
+SUMO's front bumper; an actor first seen starts from the straight chord.
+
 Bodies are pooled per size class: an actor leaving the radius parks its body far below the
 world; a new actor of that size reuses it. No body is ever created twice for the same size,
 so memory does not grow with the run (PyBullet does not free shapes on removeBody).
@@ -19,6 +26,9 @@ import numpy as np
 import pybullet as pb
 
 PARK_Z = -500.0
+LONG_M = 7.0          # vehicles longer than this are chains of boxes
+SEGMENT_M = 4.0       # ... of at most this length
+TRAIL_STEP_M = 0.25   # the front's path is kept as points this far apart (at least)
 COLOURS = {"person": (0.85, 0.55, 0.20, 1), "bus": (0.9, 0.75, 0.1, 1), "truck": (0.55, 0.55, 0.6, 1),
            "default": (0.25, 0.40, 0.75, 1)}
 
@@ -27,6 +37,41 @@ def _size_key(kind, l, w, h):
     if kind == "person":
         return ("person", 0.5, 0.5, 1.75)
     return (kind if kind in ("bus", "truck") else "car", round(l * 2) / 2, round(w * 4) / 4, round(h * 4) / 4)
+
+
+def _segments(length: float) -> int:
+    """Boxes in the chain of a vehicle this long (1: one box)."""
+    return 1 if length <= LONG_M else int(math.ceil(length / SEGMENT_M - 1e-9))
+
+
+def _along_trail(trail: list, dists) -> list:
+    """Points at arc distances `dists` (ascending) back from the trail's newest point (its last),
+    going on straight beyond its oldest."""
+    out = []
+    k = len(trail) - 1
+    px, py = trail[k]
+    done = 0.0                     # arc length from the front to (px, py)
+    for d in dists:
+        while True:
+            if k == 0:             # beyond the oldest point: straight on, along the last piece
+                if len(trail) >= 2:
+                    qx, qy = trail[0]
+                    rx, ry = trail[1]
+                    n = math.hypot(qx - rx, qy - ry) or 1.0
+                    out.append((qx + (qx - rx) / n * (d - done), qy + (qy - ry) / n * (d - done)))
+                else:
+                    out.append((px, py))
+                break
+            qx, qy = trail[k - 1]
+            seg = math.hypot(qx - px, qy - py)
+            if done + seg >= d:
+                t = (d - done) / seg if seg > 0 else 0.0
+                out.append((px + (qx - px) * t, py + (qy - py) * t))
+                break
+            done += seg
+            k -= 1
+            px, py = qx, qy
+    return out
 
 
 def _overlap(a, b, margin: float = 0.1) -> bool:
@@ -63,6 +108,9 @@ class ActorMirror:
         self.max_error_m = 0.0
         self._keys: dict = {}       # actor id -> size key
         self._last: dict = {}       # body -> last position set (a body standing still is not moved)
+        self.chains: dict = {}      # long vehicle id -> [(body, key)] of its boxes behind the first
+        self._trails: dict = {}     # long vehicle id -> its front bumper's recent path [(x, y)], newest last
+        self._front: dict = {}      # long vehicle id -> (x, y) of its chain's front (for pose_error)
 
     def _body(self, key):
         free = self.pool.get(key)
@@ -115,12 +163,19 @@ class ActorMirror:
                 near = [False] * n
             xs, ys, zs, yaws = x.tolist(), y.tolist(), z.tolist(), yaw.tolist()
             ids, kinds = snap.ids, snap.kind
+            long_ = np.flatnonzero((snap.length > LONG_M) & (kinds != "person")).tolist()
+            chain_at = {}
+            if long_:
+                chain_at = self._chains(snap, long_, ego)
             for k in range(n):
                 aid = ids[k]
                 key = keys.get(aid)
                 if key is None:
                     kind = "person" if kinds[k] == "person" else str(kinds[k])
                     key = keys[aid] = _size_key(kind, snap.length[k], snap.width[k], snap.height[k])
+                    if k in chain_at:          # (the size of one box of its chain)
+                        L = float(snap.length[k])
+                        key = keys[aid] = (key[0], round(L / _segments(L), 2), key[2], key[3])
                 cur = self.active.get(aid)
                 if cur is None or cur[1] != key:
                     if cur is not None:
@@ -128,6 +183,9 @@ class ActorMirror:
                     cur = (self._body(key), key)
                     self.active[aid] = cur
                 seen.add(aid)
+                if k in chain_at:
+                    held += self._place_chain(aid, cur, key, chain_at[k])
+                    continue
                 if near[k] and _overlap(ego, (xs[k], ys[k], yaws[k], key[1], key[2])):
                     held += 1
                     continue
@@ -140,8 +198,95 @@ class ActorMirror:
         for a in gone:
             self._park(self.active.pop(a))
             self._keys.pop(a, None)
+            for cur in self.chains.pop(a, []):
+                self._park(cur)
+            self._trails.pop(a, None)
+            self._front.pop(a, None)
         self.held += held
         return {"mirrored": len(self.active), "left": len(gone), "held": held}
+
+    def _chains(self, snap, long_, ego) -> dict:
+        """For the long vehicles (indices `long_`): their boxes as [(x, y, yaw, length, width,
+        z, pitch), ...] front first, from each one's trail (updated here)."""
+        out = {}
+        boxes, where = [], []
+        for k in long_:
+            aid = snap.ids[k]
+            L, yaw = float(snap.length[k]), float(snap.yaw[k])
+            c, s_ = math.cos(yaw), math.sin(yaw)
+            fx, fy = float(snap.x[k]) + 0.5 * L * c, float(snap.y[k]) + 0.5 * L * s_
+            trail = self._trails.get(aid)
+            if trail is None:          # first seen: the straight chord behind the front
+                trail = self._trails[aid] = [(fx - L * c, fy - L * s_), (fx, fy)]
+            else:
+                lx, ly = trail[-1]
+                px, py = trail[-2]
+                if math.hypot(fx - lx, fy - ly) > 3.0 * L:    # a jump (teleported): start anew
+                    trail[:] = [(fx - L * c, fy - L * s_), (fx, fy)]
+                elif len(trail) > 2 and math.hypot(fx - px, fy - py) < TRAIL_STEP_M:
+                    trail[-1] = (fx, fy)       # (near the point before: the newest moves on)
+                else:
+                    trail.append((fx, fy))
+            n = _segments(L)
+            seg = L / n
+            pts = _along_trail(trail, [i * seg for i in range(n + 1)])
+            # drop what lies beyond the tail (keep one point past it)
+            tot, keep = 0.0, len(trail) - 1
+            while keep > 0 and tot < L + 1.0:
+                tot += math.hypot(trail[keep][0] - trail[keep - 1][0], trail[keep][1] - trail[keep - 1][1])
+                keep -= 1
+            if keep > 0:
+                del trail[:keep]
+            self._front[aid] = (fx, fy)
+            for i in range(n):
+                # (the box's front on the path: the first one's is SUMO's front bumper)
+                (ax, ay), (bx, by) = pts[i], pts[i + 1]
+                yb = math.atan2(ay - by, ax - bx)
+                boxes.append((ax - 0.5 * seg * math.cos(yb), ay - 0.5 * seg * math.sin(yb), yb, seg,
+                              float(snap.width[k])))
+                where.append(k)
+        if boxes:
+            B = np.array([b[:3] for b in boxes])
+            z = self.world.ground_z(B[:, 0], B[:, 1])
+            pitch = self.world.slope_pitch(B[:, 0], B[:, 1], B[:, 2])
+            for i, k in enumerate(where):
+                zi = float(z[i]) if np.isfinite(z[i]) else 0.0
+                pi = float(pitch[i]) if np.isfinite(pitch[i]) else math.radians(float(snap.slope[k]))
+                out.setdefault(k, []).append(boxes[i] + (zi, pi))
+        if ego is not None:
+            for k, bx in out.items():
+                if any(_overlap(ego, b[:5]) for b in bx):
+                    out[k] = None          # held where it was
+        return out
+
+    def _place_chain(self, aid, cur, key, boxes) -> int:
+        """Move a long vehicle's boxes (`cur`: its first, already its own); 1 if held."""
+        if boxes is None:
+            return 1
+        chain = self.chains.setdefault(aid, [])
+        while len(chain) < len(boxes) - 1:
+            chain.append((self._body(key), key))
+        while len(chain) > len(boxes) - 1:
+            self._park(chain.pop())
+        c = self.client
+        for (body, _), (x, y, yaw, _l, _w, z, pitch) in zip([cur] + chain, boxes):
+            hy, hp = yaw * 0.5, -pitch * 0.5
+            cy, sy, cp2, sp2 = math.cos(hy), math.sin(hy), math.cos(hp), math.sin(hp)
+            pos = (x, y, z + key[3] * 0.5 * math.cos(pitch))
+            if self._last.get(body) == pos:
+                continue
+            self._last[body] = pos
+            pb.resetBasePositionAndOrientation(body, pos, (-sp2 * sy, sp2 * cy, cp2 * sy, cp2 * cy),
+                                               physicsClientId=c)
+        return 0
+
+    def body_actors(self) -> dict:
+        """Body id -> actor id, for every mirrored body (a long vehicle's boxes all map to it)."""
+        out = {b: a for a, (b, _) in self.active.items()}
+        for a, chain in self.chains.items():
+            for b, _ in chain:
+                out[b] = a
+        return out
 
     def _park(self, cur):
         body, key = cur
@@ -151,13 +296,24 @@ class ActorMirror:
         self.pool.setdefault(key, []).append(body)
 
     def pose_error(self, snap) -> float:
-        """Largest distance between a mirrored body and SUMO's centre for the same actor (m)."""
+        """Largest distance between a mirrored body and SUMO's centre for the same actor (m);
+        for a long vehicle, between its chain's front and SUMO's front bumper."""
         worst = 0.0
         for k in range(len(snap)):
-            cur = self.active.get(snap.ids[k])
+            aid = snap.ids[k]
+            cur = self.active.get(aid)
             if cur is None:
                 continue
-            (x, y, _), _ = pb.getBasePositionAndOrientation(cur[0], physicsClientId=self.client)
+            (x, y, _), q = pb.getBasePositionAndOrientation(cur[0], physicsClientId=self.client)
+            if aid in self._front:
+                yaw = pb.getEulerFromQuaternion(q)[2]
+                half = 0.5 * cur[1][1]
+                L = float(snap.length[k])
+                x, y = x + half * math.cos(yaw), y + half * math.sin(yaw)
+                fx = snap.x[k] + 0.5 * L * math.cos(snap.yaw[k])
+                fy = snap.y[k] + 0.5 * L * math.sin(snap.yaw[k])
+                worst = max(worst, math.hypot(x - fx, y - fy))
+                continue
             worst = max(worst, math.hypot(x - snap.x[k], y - snap.y[k]))
         self.max_error_m = max(self.max_error_m, worst)
         return worst
@@ -169,6 +325,9 @@ class ActorMirror:
                 self.active[new] = self.active.pop(old)
             if old in self._keys:
                 self._keys[new] = self._keys.pop(old)
+            for d in (self.chains, self._trails, self._front):
+                if old in d:
+                    d[new] = d.pop(old)
 
     def body_of(self, actor_id):
         cur = self.active.get(actor_id)

@@ -485,7 +485,7 @@ class Simulation:
         import pybullet as pb
 
         cps = pb.getContactPoints(bodyA=self.vehicle.body_id, physicsClientId=self.physics.client)
-        body_actor = {b: a for a, (b, _) in self.mirror.active.items()}
+        body_actor = self.mirror.body_actors()
         hit = None
         for c in cps:
             other = c[2]

@@ -566,6 +566,70 @@ def test_a_car_coming_to_the_same_junction_is_left_to_its_right_of_way(helsinki)
         sim.teardown()
 
 
+def test_a_long_vehicle_is_mirrored_as_a_chain_along_its_path(helsinki):
+    """A 12 m bus through a 90-degree turn of 9 m radius, fed to the mirror as SUMO states
+    it (front-to-back chord, centre on it): mirrored as one box along the chord, its middle
+    would cut the bend by L^2/8R = 2 m; as a chain of 4 m boxes along its front's path, no box
+    centre is more than 0.3 m off the bend, the chain's front is SUMO's front bumper, every
+    box maps to the bus, and the boxes go back to the pool when it leaves."""
+    import pybullet as pb
+
+    from cosim.mirror import _segments
+    from cosim.traffic import ActorsSnapshot
+
+    sim = start_sim(helsinki, start=HEL_MID)
+    try:
+        m = sim.mirror
+        st = sim.vehicle.state()
+        R, L = 9.0, 12.0
+        ox, oy = st.x + 40.0, st.y + 40.0         # the turn's centre, away from the car
+        # the front's path: straight east along y = oy - R, then a left turn around (ox, oy)
+        def front(u):
+            if u < 0.0:
+                return ox + u, oy - R, 0.0
+            a = min(u / R, math.pi / 2)
+            x, y = ox + R * math.sin(a), oy - R * math.cos(a)
+            if u > R * math.pi / 2:
+                x, y = ox + R, oy + (u - R * math.pi / 2)
+            return x, y, a
+        def off_path(x, y):
+            if x <= ox:
+                return abs(y - (oy - R))
+            if y >= oy:
+                return abs(x - (ox + R))
+            return abs(math.hypot(x - ox, y - oy) - R)
+        one = lambda v: np.array([v])                       # noqa: E731
+        worst_box, worst_chord, worst_err = 0.0, 0.0, 0.0
+        for u in np.arange(-20.0, 25.0, 1.2):             # 12 m/s, 0.1 s steps
+            fx, fy, _ = front(u)
+            bx, by, _ = front(u - L)                      # SUMO's back: L along the path
+            yaw = math.atan2(fy - by, fx - bx)
+            cx, cy = fx - 0.5 * L * math.cos(yaw), fy - 0.5 * L * math.sin(yaw)
+            snap = ActorsSnapshot(0.0, np.array(["bus1"], dtype=object), np.array(["bus"], dtype=object),
+                                  one(cx), one(cy), one(yaw), one(L), one(2.5), one(3.4), one(12.0), one(0.0),
+                                  np.array(["x_0"], dtype=object))
+            m.update(snap)
+            worst_err = max(worst_err, m.pose_error(snap))
+            if u < L:
+                continue                                   # (the chain starts from the chord)
+            bodies = [m.active["bus1"][0]] + [b for b, _ in m.chains["bus1"]]
+            assert len(bodies) == _segments(L) == 3
+            for b in bodies:
+                (x, y, _), _ = pb.getBasePositionAndOrientation(b, physicsClientId=sim.physics.client)
+                worst_box = max(worst_box, off_path(x, y))
+            worst_chord = max(worst_chord, off_path(cx, cy))
+            assert all(m.body_actors()[b] == "bus1" for b in bodies)
+        assert worst_chord > 1.5, worst_chord
+        assert worst_box < 0.3, worst_box
+        assert worst_err < 0.05, worst_err
+        parked = len(m.pool.get(m.active["bus1"][1], []))
+        m.update(ActorsSnapshot.empty(1.0))
+        assert "bus1" not in m.active and "bus1" not in m.chains
+        assert sum(len(v) for v in m.pool.values()) >= parked + 3
+    finally:
+        sim.teardown()
+
+
 def _arc_polyline(r: float, deg: float, lead: float = 10.0) -> np.ndarray:
     th = np.radians(np.linspace(0.0, deg, 60))
     arc = np.column_stack([r * np.sin(th), r * (1.0 - np.cos(th))])

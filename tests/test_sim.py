@@ -45,7 +45,7 @@ def test_drive_across_a_chunk_border_with_traffic(motorway_world, tmp_path, para
                     telemetry=str(tel), parallel_sumo=parallel)
     sim = Simulation(cfg).setup()
     assert sim._pipelined == parallel
-    mirror_checked = 0
+    mirror_checked = chains_checked = 0
     try:
         sumo = sim.traffic.sumo
         update = sim.mirror.update
@@ -56,7 +56,7 @@ def test_drive_across_a_chunk_border_with_traffic(motorway_world, tmp_path, para
             # already started its next step by then; its answers for the mirrored state are the
             # ones shipped with the step (test_sumo_process holds them to the in-process ones),
             # so the bodies are held to the snapshot there.
-            nonlocal mirror_checked
+            nonlocal mirror_checked, chains_checked
             out = update(snap, ego)
             if sim.mirror.held:
                 return out
@@ -75,6 +75,14 @@ def test_drive_across_a_chunk_border_with_traffic(motorway_world, tmp_path, para
                     yaw0, h = sumo_angle_to_yaw(ang), sumo.vehicle.getHeight(aid)
                 (bx, by, bz), q = pb.getBasePositionAndOrientation(body, physicsClientId=sim.physics.client)
                 yaw = pb.getEulerFromQuaternion(q)[2]
+                if aid in sim.mirror.chains:
+                    # a long vehicle: a chain of boxes along its front's path; the first box's
+                    # front is SUMO's front bumper
+                    L, half = float(snap.length[k]), 0.5 * sim.mirror.active[aid][1][1]
+                    fx, fy = cx + 0.5 * L * math.cos(yaw0), cy + 0.5 * L * math.sin(yaw0)
+                    assert math.hypot(bx + half * math.cos(yaw) - fx, by + half * math.sin(yaw) - fy) < 0.05
+                    chains_checked += 1
+                    continue
                 assert math.hypot(bx - cx, by - cy) < 0.05
                 assert abs(math.remainder(yaw - yaw0, 2 * math.pi)) < 0.01
                 gz = float(sim.world.ground_z(cx, cy)[0])
@@ -89,6 +97,7 @@ def test_drive_across_a_chunk_border_with_traffic(motorway_world, tmp_path, para
         summary = sim.finish()
     finally:
         sim.teardown()
+    assert chains_checked > 20                    # (trucks on the motorway)
     assert mirror_checked > 20
     assert gap < 3.0                              # the ego is in SUMO where physics has it
     assert summary.distance_m > 900, summary.line()
