@@ -28,7 +28,7 @@ import pybullet as pb
 PARK_Z = -500.0
 LONG_M = 7.0          # vehicles longer than this are chains of boxes
 SEGMENT_M = 4.0       # ... of at most this length
-TRAIL_STEP_M = 0.25   # the front's path is kept as points this far apart (at least)
+TRAIL_STEP_M = 1.0    # the front's path is kept as points this far apart (at least)
 COLOURS = {"person": (0.85, 0.55, 0.20, 1), "bus": (0.9, 0.75, 0.1, 1), "truck": (0.55, 0.55, 0.6, 1),
            "default": (0.25, 0.40, 0.75, 1)}
 
@@ -111,6 +111,7 @@ class ActorMirror:
         self.chains: dict = {}      # long vehicle id -> [(body, key)] of its boxes behind the first
         self._trails: dict = {}     # long vehicle id -> its front bumper's recent path [(x, y)], newest last
         self._front: dict = {}      # long vehicle id -> (x, y) of its chain's front (for pose_error)
+        self._chain_last: dict = {}  # long vehicle id -> (front, boxes) last computed
 
     def _body(self, key):
         free = self.pool.get(key)
@@ -144,10 +145,31 @@ class ActorMirror:
         held = 0
         if n:
             x, y, yaw = snap.x, snap.y, snap.yaw
-            z = self.world.ground_z(x, y)
+            kinds = snap.kind
+            # long vehicles' chains of boxes: their ground looked up with the others' (one call)
+            long_ = np.flatnonzero((snap.length > LONG_M) & (kinds != "person")).tolist()
+            boxes, where = self._chain_boxes(snap, long_) if long_ else ([], [])
+            slope = np.radians(snap.slope)
+            if boxes:
+                B = np.array(boxes)
+                X, Y, YAW = (np.concatenate((a, B[:, j])) for j, a in enumerate((x, y, yaw)))
+                slope = np.concatenate((slope, slope[where]))
+            else:
+                X, Y, YAW = x, y, yaw
+            z = self.world.ground_z(X, Y)
             z = np.where(np.isfinite(z), z, 0.0)
-            pitch = self.world.slope_pitch(x, y, yaw)
-            pitch = np.where(np.isfinite(pitch), pitch, np.radians(snap.slope))
+            pitch = self.world.slope_pitch(X, Y, YAW)
+            pitch = np.where(np.isfinite(pitch), pitch, slope)
+            chain_at: dict = {}
+            if boxes:
+                zl, pl = z[n:].tolist(), pitch[n:].tolist()
+                for i, k in enumerate(where):
+                    chain_at.setdefault(k, []).append(boxes[i] + (zl[i], pl[i]))
+            if ego is not None:
+                for k, bx in chain_at.items():
+                    if any(_overlap(ego, b[:5]) for b in bx):
+                        chain_at[k] = None          # held where it was
+            z, pitch = z[:n], pitch[:n]
             # size keys (box sizes rounded so that bodies can be pooled), computed once per actor
             keys = self._keys
             # quaternions of (roll 0, pitch -p, yaw) for all actors at once
@@ -162,11 +184,7 @@ class ActorMirror:
             else:
                 near = [False] * n
             xs, ys, zs, yaws = x.tolist(), y.tolist(), z.tolist(), yaw.tolist()
-            ids, kinds = snap.ids, snap.kind
-            long_ = np.flatnonzero((snap.length > LONG_M) & (kinds != "person")).tolist()
-            chain_at = {}
-            if long_:
-                chain_at = self._chains(snap, long_, ego)
+            ids = snap.ids
             for k in range(n):
                 aid = ids[k]
                 key = keys.get(aid)
@@ -202,19 +220,24 @@ class ActorMirror:
                 self._park(cur)
             self._trails.pop(a, None)
             self._front.pop(a, None)
+            self._chain_last.pop(a, None)
         self.held += held
         return {"mirrored": len(self.active), "left": len(gone), "held": held}
 
-    def _chains(self, snap, long_, ego) -> dict:
-        """For the long vehicles (indices `long_`): their boxes as [(x, y, yaw, length, width,
-        z, pitch), ...] front first, from each one's trail (updated here)."""
-        out = {}
+    def _chain_boxes(self, snap, long_) -> tuple:
+        """For the long vehicles (indices `long_`): their boxes (x, y, yaw, length, width),
+        front first, from each one's trail (updated here), and the vehicle's index for each."""
         boxes, where = [], []
         for k in long_:
             aid = snap.ids[k]
             L, yaw = float(snap.length[k]), float(snap.yaw[k])
             c, s_ = math.cos(yaw), math.sin(yaw)
             fx, fy = float(snap.x[k]) + 0.5 * L * c, float(snap.y[k]) + 0.5 * L * s_
+            last = self._chain_last.get(aid)
+            if last is not None and last[0] == (fx, fy):     # standing: the same boxes
+                boxes += last[1]
+                where += [k] * len(last[1])
+                continue
             trail = self._trails.get(aid)
             if trail is None:          # first seen: the straight chord behind the front
                 trail = self._trails[aid] = [(fx - L * c, fy - L * s_), (fx, fy)]
@@ -238,26 +261,17 @@ class ActorMirror:
             if keep > 0:
                 del trail[:keep]
             self._front[aid] = (fx, fy)
+            mine = []
             for i in range(n):
                 # (the box's front on the path: the first one's is SUMO's front bumper)
                 (ax, ay), (bx, by) = pts[i], pts[i + 1]
                 yb = math.atan2(ay - by, ax - bx)
-                boxes.append((ax - 0.5 * seg * math.cos(yb), ay - 0.5 * seg * math.sin(yb), yb, seg,
-                              float(snap.width[k])))
-                where.append(k)
-        if boxes:
-            B = np.array([b[:3] for b in boxes])
-            z = self.world.ground_z(B[:, 0], B[:, 1])
-            pitch = self.world.slope_pitch(B[:, 0], B[:, 1], B[:, 2])
-            for i, k in enumerate(where):
-                zi = float(z[i]) if np.isfinite(z[i]) else 0.0
-                pi = float(pitch[i]) if np.isfinite(pitch[i]) else math.radians(float(snap.slope[k]))
-                out.setdefault(k, []).append(boxes[i] + (zi, pi))
-        if ego is not None:
-            for k, bx in out.items():
-                if any(_overlap(ego, b[:5]) for b in bx):
-                    out[k] = None          # held where it was
-        return out
+                mine.append((ax - 0.5 * seg * math.cos(yb), ay - 0.5 * seg * math.sin(yb), yb, seg,
+                             float(snap.width[k])))
+            self._chain_last[aid] = ((fx, fy), mine)
+            boxes += mine
+            where += [k] * n
+        return boxes, where
 
     def _place_chain(self, aid, cur, key, boxes) -> int:
         """Move a long vehicle's boxes (`cur`: its first, already its own); 1 if held."""
@@ -325,7 +339,7 @@ class ActorMirror:
                 self.active[new] = self.active.pop(old)
             if old in self._keys:
                 self._keys[new] = self._keys.pop(old)
-            for d in (self.chains, self._trails, self._front):
+            for d in (self.chains, self._trails, self._front, self._chain_last):
                 if old in d:
                     d[new] = d.pop(old)
 
