@@ -64,17 +64,24 @@ def _resample(P: np.ndarray, step: float) -> np.ndarray:
     return np.column_stack([np.interp(t, s, P[:, 0]), np.interp(t, s, P[:, 1])])
 
 
+BACKSTEP_MAX_M = 2.0    # a point this near behind the one before is a kink where lanes join
+
+
 def _forward_points(P: np.ndarray) -> np.ndarray:
     """Which points of a chain of lane shapes to keep: not a repeat of the point before, and
-    not behind it. Where SUMO joins lanes at a very short edge, one lane can begin behind
-    the end of the one before (central Helsinki: 0.86 m back at junction 266377992): a path
-    through that point doubles back on itself, and a point projected onto it past the kink
-    reads as far off the path."""
+    not a little behind it. Where SUMO joins lanes at a very short edge, one lane can begin
+    behind the end of the one before (central Helsinki: 0.86 m back at junction 266377992): a
+    path through that point doubles back on itself, and a point projected onto it past the
+    kink reads as far off the path. Only points within BACKSTEP_MAX_M are dropped: a turn of
+    more than 90 degrees at a point (Helsinki's junction 1319789487: south-west into a 0.2 m
+    edge, then north) left every later point "behind", and the path jumped 585 m straight
+    through the city to the first point ahead again."""
     keep = np.ones(len(P), dtype=bool)
     last, prev = 0, None
     for i in range(1, len(P)):
         d = P[i] - P[last]
-        if d @ d <= 1e-6 or (prev is not None and d @ (P[last] - P[prev]) <= 0.0):
+        dd = d @ d
+        if dd <= 1e-6 or (prev is not None and dd < BACKSTEP_MAX_M ** 2 and d @ (P[last] - P[prev]) <= 0.0):
             keep[i] = False
             continue
         prev, last = last, i
@@ -479,17 +486,20 @@ def _detour(sim, out: list, edges: list, i: int, j: int, tunnel: bool, back_max:
     route's last edge, else from up to ``back_max`` edges before it (a one-way street may
     have no other exit), to ``edges[j]``, else up to ``ahead_max`` edges further on. Returns
     (edges of ``out`` given up, index of the edge rejoined, the detour's edges) or None.
-    Each search expands at most ``max_search`` edges (a block, not the city)."""
+    Each search expands at most ``max_search`` edges (a block, not the city). A detour with a
+    step the car cannot drive is no way around (the search avoids single links, not two turns
+    around a short edge: Helsinki's way around the hairpin at junction 1319789487 came back
+    to the same hairpin after 1.4 km)."""
     for back in range(min(back_max, len(out) - 1) + 1):
         src = out[len(out) - 1 - back]
         for jj in range(j, min(len(edges), j + ahead_max + 1)):
+            alt = route_without_turnarounds(sim, src, edges[jj], max_edges=max_search)
             if jj == j and not tunnel and back == 0:
-                alt = route_without_turnarounds(sim, src, edges[jj], max_edges=max_search)
-                if alt and len(alt) > 2:
+                if alt and len(alt) > 2 and not undrivable_steps(sim, alt):
                     return back, jj, alt
                 continue
-            alt = route_without_turnarounds(sim, src, edges[jj], max_edges=max_search)
-            if alt and len(alt) >= 2 and not (back == 0 and jj == i and len(alt) == 2):
+            if alt and len(alt) >= 2 and not (back == 0 and jj == i and len(alt) == 2) \
+                    and not undrivable_steps(sim, alt):
                 return back, jj, alt
     return None
 

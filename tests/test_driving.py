@@ -630,6 +630,32 @@ def test_a_long_vehicle_is_mirrored_as_a_chain_along_its_path(helsinki):
         sim.teardown()
 
 
+def test_a_path_keeps_its_points_after_a_sharp_turn(helsinki):
+    """A chain of lane shapes drops a point a little behind the one before (lanes joined at a
+    very short edge), but not everything after a turn of more than 90 degrees: at Helsinki's
+    junction 1319789487 the route turns south-west into a 0.2 m edge, then north; every later
+    point was "behind", and the path ran 585 m straight through the city to the next point
+    ahead (the car circled in the junction and hit a pedestrian). The lane path through it
+    follows its lanes."""
+    from cosim.driving import LanePath, _forward_points
+
+    # a kink of 0.5 m back is dropped; a 135-degree turn keeps what follows it
+    P = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [1.5, 0.0], [2.5, 0.0], [3.5, 0.0]])
+    assert _forward_points(P).tolist() == [True, True, True, False, True, True]
+    turn = np.array([[0.0, 0.0], [-1.0, -1.0], [-2.0, -2.0], [-2.0, -1.0], [-2.0, 0.0], [-2.0, 5.0]])
+    assert _forward_points(turn)[3:].sum() >= 2
+    sim = start_sim(helsinki, start=HEL_MID)
+    try:
+        s = sim.traffic.sumo
+        path = LanePath(s, ["157428789#2", "117164338#0", "199190672"])
+        gaps = np.hypot(*np.diff(path.xy, axis=0).T)
+        assert gaps.max() < 20.0, gaps.max()
+        assert any(ln.startswith("199190672_") for ln, _ in path.lane_of)
+        assert 100.0 < path.length < 130.0, path.length      # (0.2 + 2.8 + 0.2 + 14.6 + 95.2 m)
+    finally:
+        sim.teardown()
+
+
 def _arc_polyline(r: float, deg: float, lead: float = 10.0) -> np.ndarray:
     th = np.radians(np.linspace(0.0, deg, 60))
     arc = np.column_stack([r * np.sin(th), r * (1.0 - np.cos(th))])
