@@ -54,8 +54,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .driving import (PurePursuit, SpeedController, _drivable_lanes, curve_speed, junction_of, plan_speed,
-                      stop_speed)
+from .driving import (PurePursuit, SpeedController, _drivable_lanes, _resample, curve_speed, junction_of,
+                      plan_speed, stop_speed)
 
 log = logging.getLogger("cosim.autopilot")
 
@@ -530,11 +530,9 @@ class Autopilot:
                 P = np.asarray(self.sim.traffic.sumo.lane.getShape(lane), dtype=float)[:, :2]
             except Exception:
                 P = np.zeros((0, 2))
-            if len(P) >= 2:
-                seg = np.hypot(*np.diff(P, axis=0).T)
-                a = np.concatenate([[0.0], np.cumsum(seg)])
-                u = np.linspace(0.0, a[-1], max(2, int(np.ceil(a[-1])) + 1))
-                got = (np.column_stack([np.interp(u, a, P[:, 0]), np.interp(u, a, P[:, 1])]), u)
+            Q = _resample(P, 1.0) if len(P) >= 2 else np.zeros((0, 2))
+            if len(Q) >= 2:
+                got = (Q, np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(Q, axis=0).T))]))
             else:
                 got = (np.zeros((0, 2)), np.zeros(0))
             self._lane_shapes[lane] = got

@@ -110,8 +110,7 @@ class ActorMirror:
         self._last: dict = {}       # body -> last position set (a body standing still is not moved)
         self.chains: dict = {}      # long vehicle id -> [(body, key)] of its boxes behind the first
         self._trails: dict = {}     # long vehicle id -> its front bumper's recent path [(x, y)], newest last
-        self._front: dict = {}      # long vehicle id -> (x, y) of its chain's front (for pose_error)
-        self._chain_last: dict = {}  # long vehicle id -> (front, boxes) last computed
+        self._chain_last: dict = {}  # long vehicle id -> (its front bumper, its boxes) last computed
 
     def _body(self, key):
         free = self.pool.get(key)
@@ -160,23 +159,23 @@ class ActorMirror:
             z = np.where(np.isfinite(z), z, 0.0)
             pitch = self.world.slope_pitch(X, Y, YAW)
             pitch = np.where(np.isfinite(pitch), pitch, slope)
+            # quaternions of (roll 0, pitch -p, yaw) for all actors (and boxes) at once
+            hy, hp = YAW * 0.5, -pitch * 0.5
+            cy, sy, cp2, sp2 = np.cos(hy), np.sin(hy), np.cos(hp), np.sin(hp)
+            quat = np.column_stack([-sp2 * sy, sp2 * cy, cp2 * sy, cp2 * cy]).tolist()
+            cosp = np.cos(pitch)
             chain_at: dict = {}
             if boxes:
-                zl, pl = z[n:].tolist(), pitch[n:].tolist()
+                zl, cl = z[n:].tolist(), cosp[n:].tolist()
                 for i, k in enumerate(where):
-                    chain_at.setdefault(k, []).append(boxes[i] + (zl[i], pl[i]))
+                    chain_at.setdefault(k, []).append(boxes[i] + (zl[i], cl[i], quat[n + i]))
             if ego is not None:
                 for k, bx in chain_at.items():
                     if any(_overlap(ego, b[:5]) for b in bx):
                         chain_at[k] = None          # held where it was
-            z, pitch = z[:n], pitch[:n]
+            z, cosp = z[:n], cosp[:n]
             # size keys (box sizes rounded so that bodies can be pooled), computed once per actor
             keys = self._keys
-            # quaternions of (roll 0, pitch -p, yaw) for all actors at once
-            hy, hp = yaw * 0.5, -pitch * 0.5
-            cy, sy, cp2, sp2 = np.cos(hy), np.sin(hy), np.cos(hp), np.sin(hp)
-            quat = np.column_stack([-sp2 * sy, sp2 * cy, cp2 * sy, cp2 * cy]).tolist()
-            cosp = np.cos(pitch)
             # only actors near the ego can overlap it (cheap distance test first)
             if ego is not None:
                 reach = (ego[3] + ego[4]) * 0.5 + 0.5 * (snap.length + snap.width) + 0.5
@@ -219,7 +218,6 @@ class ActorMirror:
             for cur in self.chains.pop(a, []):
                 self._park(cur)
             self._trails.pop(a, None)
-            self._front.pop(a, None)
             self._chain_last.pop(a, None)
         self.held += held
         return {"mirrored": len(self.active), "left": len(gone), "held": held}
@@ -260,7 +258,6 @@ class ActorMirror:
                 keep -= 1
             if keep > 0:
                 del trail[:keep]
-            self._front[aid] = (fx, fy)
             mine = []
             for i in range(n):
                 # (the box's front on the path: the first one's is SUMO's front bumper)
@@ -283,15 +280,12 @@ class ActorMirror:
         while len(chain) > len(boxes) - 1:
             self._park(chain.pop())
         c = self.client
-        for (body, _), (x, y, yaw, _l, _w, z, pitch) in zip([cur] + chain, boxes):
-            hy, hp = yaw * 0.5, -pitch * 0.5
-            cy, sy, cp2, sp2 = math.cos(hy), math.sin(hy), math.cos(hp), math.sin(hp)
-            pos = (x, y, z + key[3] * 0.5 * math.cos(pitch))
+        for (body, _), (x, y, _yaw, _l, _w, z, cosp, quat) in zip([cur] + chain, boxes):
+            pos = (x, y, z + key[3] * 0.5 * cosp)
             if self._last.get(body) == pos:
                 continue
             self._last[body] = pos
-            pb.resetBasePositionAndOrientation(body, pos, (-sp2 * sy, sp2 * cy, cp2 * sy, cp2 * cy),
-                                               physicsClientId=c)
+            pb.resetBasePositionAndOrientation(body, pos, quat, physicsClientId=c)
         return 0
 
     def body_actors(self) -> dict:
@@ -319,7 +313,7 @@ class ActorMirror:
             if cur is None:
                 continue
             (x, y, _), q = pb.getBasePositionAndOrientation(cur[0], physicsClientId=self.client)
-            if aid in self._front:
+            if aid in self._chain_last:
                 yaw = pb.getEulerFromQuaternion(q)[2]
                 half = 0.5 * cur[1][1]
                 L = float(snap.length[k])
@@ -339,7 +333,7 @@ class ActorMirror:
                 self.active[new] = self.active.pop(old)
             if old in self._keys:
                 self._keys[new] = self._keys.pop(old)
-            for d in (self.chains, self._trails, self._front, self._chain_last):
+            for d in (self.chains, self._trails, self._chain_last):
                 if old in d:
                     d[new] = d.pop(old)
 

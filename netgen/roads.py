@@ -1107,7 +1107,6 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     i = np.flatnonzero((kept[1:] == kept[:-1] + 1) & (cg[kept[1:]] == cg[kept[:-1]]) & car_k[:-1])
     L0, R0 = nk_ + i, 2 * nk_ + i
     sup_tris = [np.column_stack([L0, R0, L0 + 1]), np.column_stack([R0, R0 + 1, L0 + 1])]
-    sup_n = [3 * nk_]                      # (points in `sup` so far: the next block's offset)
     tree = cKDTree(np.vstack(sup)[:, :2], balanced_tree=False, compact_nodes=False)   # (3x faster to build)
     supz = np.concatenate([czk, czk + tk, czk - tk])
 
@@ -1239,12 +1238,10 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
                 sup.append(np.column_stack([Q[ok], qz[ok]]))
                 sup_hw.append(np.full(int(ok.sum()), 0.5 * JUNCTION_SUPPORT_STEP))
                 sup_car.append(np.ones(int(ok.sum()), dtype=bool))
-                sup_n[0] += int(ok.sum())
+            sup_tris.append(F + sum(map(len, sup)))      # (V's first index in the support)
             sup.append(V)
             sup_hw.append(np.zeros(len(V)))
             sup_car.append(np.ones(len(V), dtype=bool))
-            sup_tris.append(F + sup_n[0])
-            sup_n[0] += len(V)
         return part
 
     junction_part = polygon_part("asphalt")
@@ -1270,17 +1267,14 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
         sup.append(np.column_stack([G, gz]))
         sup_hw.append(ghw)
         sup_car.append(np.ones(len(G), dtype=bool))
-        sup_n[0] += len(G)
+        sup_tris.append(f + sum(map(len, sup)))
         sup.append(v)
         sup_hw.append(np.zeros(len(v)))
         sup_car.append(np.ones(len(v), dtype=bool))
-        sup_tris.append(f + sup_n[0])
-        sup_n[0] += len(v)
     geo.support_pts = np.vstack(sup)
     geo.support_hw = np.concatenate(sup_hw)
     geo.support_car = np.concatenate(sup_car)
     geo.support_tris = np.vstack(sup_tris).astype(np.int64)
-    assert sup_n[0] == len(geo.support_pts)
     if on_support is not None:
         on_support(geo.support_pts, geo.support_hw, geo.support_car, geo.support_tris)
 

@@ -200,6 +200,12 @@ def level_under_roads(grid: TerrainGrid, pts: np.ndarray, halfwidth: np.ndarray,
     return out
 
 
+def _ranks(counts: np.ndarray) -> np.ndarray:
+    """0, 1, ..., c - 1 for each count c, concatenated (the rank of each item of a
+    ``np.repeat(..., counts)`` within its group)."""
+    return np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+
+
 def surface_check_points(grid: TerrainGrid, pts: np.ndarray, tris: np.ndarray) -> np.ndarray:
     """Points (k, 3) of the triangulated surface (`pts` (n, 3) indexed by `tris` (m, 3)) where
     the terrain, less the surface, can be highest: Bullet's heightfield is planar on each
@@ -225,7 +231,7 @@ def surface_check_points(grid: TerrainGrid, pts: np.ndarray, tris: np.ndarray) -
         if not len(sel):
             continue
         rep = np.repeat(sel, n[sel])
-        k = np.repeat(k0[sel], n[sel]) + (np.arange(len(rep)) - np.repeat(np.cumsum(n[sel]) - n[sel], n[sel]))
+        k = np.repeat(k0[sel], n[sel]) + _ranks(n[sel])
         t = (k - ua[rep]) / (ub[rep] - ua[rep])
         out.append(pts[a[rep]] + t[:, None] * (pts[b[rep]] - pts[a[rep]]))
     # grid nodes inside triangles, at the triangle's height
@@ -239,7 +245,7 @@ def surface_check_points(grid: TerrainGrid, pts: np.ndarray, tris: np.ndarray) -
     sel = np.flatnonzero(cnt)
     if len(sel):
         ti = np.repeat(sel, cnt[sel])
-        j = np.arange(len(ti)) - np.repeat(np.cumsum(cnt[sel]) - cnt[sel], cnt[sel])
+        j = _ranks(cnt[sel])
         cx = c0[ti] + j % nc[ti]
         cy = r0[ti] + j // nc[ti]
         A, B, C = g[tris[ti, 0]], g[tris[ti, 1]], g[tris[ti, 2]]
