@@ -5,7 +5,10 @@
 For each place (the embedded presets, and Monaco with SRTM when ../shared/data is present)
 and a world of (2 * rings + 1)^2 chunks of 1 km, it times, side by side in one run:
 
-* netconvert alone on the same OSM input, bbox and options (the goal's yardstick);
+* netconvert alone on the same OSM input, bbox and options (the goal's yardstick), the
+  whole file as XML; and, for comparison, netconvert alone on the build's network extract
+  of a PBF file (the ways, relations and nodes it reads: ``network_xml``), which gives
+  the same network faster;
 * a full build from scratch (fresh cache: OSM conversion, netconvert, all layers, writing);
 * a cached rebuild (same inputs, world already on disk).
 
@@ -39,7 +42,7 @@ from netgen import sumo_net  # noqa: E402
 from netgen.build import build_world, resolve_place  # noqa: E402
 from netgen.config import WorldConfig  # noqa: E402
 from netgen.frame import WorldFrame  # noqa: E402
-from netgen.osm_file import to_osm_xml  # noqa: E402
+from netgen.osm_file import network_xml, to_osm_xml  # noqa: E402
 
 
 def places(rings):
@@ -60,12 +63,14 @@ def _cpu() -> float:
     return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
 
 
-def netconvert_alone(cfg: WorldConfig, cache: Path, out: Path) -> tuple[float, float]:
-    """(wall, CPU) seconds of netconvert alone."""
+def netconvert_alone(cfg: WorldConfig, cache: Path, out: Path, extract: bool = False) -> tuple[float, float]:
+    """(wall, CPU) seconds of netconvert alone on the whole OSM file (as XML: netconvert
+    reads nothing else), or with `extract`, on the build's network extract of it
+    (``network_xml``, made beforehand and not timed)."""
     name, centre, source, preset = resolve_place(cfg)
     frame = WorldFrame(centre[0], centre[1], cfg.chunk_size_m)
     bbox = frame.bbox_lonlat(frame.extent(frame.ring(cfg.chunks)), margin_m=50.0)
-    osm_xml, _ = to_osm_xml(Path(source["file"]), cache)
+    osm_xml, _ = (network_xml if extract else to_osm_xml)(Path(source["file"]), cache)
     args = sumo_net.netconvert_args(osm_xml, out, frame.proj_string, bbox)
     t0, c0 = time.perf_counter(), _cpu()
     subprocess.run(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=sumo_net.sumo_env(), check=True)
@@ -84,7 +89,7 @@ def main(argv=None):
     for name, kw in places(a.rings):
         if only and name not in only:
             continue
-        nc, full, cached, stages, nc_cpu, full_cpu = [], [], [], [], [], []
+        nc, full, cached, stages, nc_cpu, full_cpu, nc_part = [], [], [], [], [], [], []
         for r in range(a.repeat):
             tmp = Path(tempfile.mkdtemp(prefix="bench-build-"))
             try:
@@ -93,6 +98,7 @@ def main(argv=None):
                 t_nc, c_nc = netconvert_alone(cfg, tmp / "cache", tmp / "alone.net.xml")
                 nc.append(t_nc)
                 nc_cpu.append(c_nc)
+                nc_part.append(netconvert_alone(cfg, tmp / "cache", tmp / "part.net.xml", extract=True)[0])
                 shutil.rmtree(tmp / "cache" / "osm", ignore_errors=True)
                 t0, c0 = time.perf_counter(), _cpu()
                 w = build_world(cfg)
@@ -114,6 +120,9 @@ def main(argv=None):
               f"{w['counts']['buildings']} buildings, world {size / 1e6:.1f} MB (load average {load})")
         print(f"   netconvert alone {m_nc:6.2f} s | full build {m_full:6.2f} s | ratio {m_full / m_nc:4.2f} "
               f"(goal <= 1.3) | cached rebuild {m_cached:5.2f} s (goal <= 2)")
+        m_part = statistics.median(nc_part)
+        print(f"   netconvert alone on the build's network extract {m_part:6.2f} s ({m_part / m_nc:.2f} of the whole file's); "
+              f"full build / that {m_full / m_part:4.2f}")
         if len(nc) > 1:     # each run's own pair: the least disturbed one is the best guess on a busy machine
             print("   ratio per run (build / netconvert alone just before it): "
                   + " ".join(f"{b / a:.2f}" for a, b in zip(nc, full)) + f" (min {min(b / a for a, b in zip(nc, full)):.2f})")

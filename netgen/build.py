@@ -143,9 +143,15 @@ def open_elevation_source(cfg: WorldConfig, preset, bbox):
 
 
 def _osm_for(cfg, source, bbox, cache: Path) -> tuple[Path, dict]:
-    from .osm_file import to_osm_xml
+    """The OSM XML netconvert reads, and the source's info (its sha256). From a PBF file,
+    only what netconvert reads (:func:`netgen.osm_file.network_xml`: the same network, made
+    faster; the buildings and scenery are read from the PBF itself); from XML (a file or
+    Overpass), the whole file sorted, which the buildings and scenery are read from too."""
+    from .osm_file import network_xml, to_osm_xml
 
     if source["kind"] in ("preset", "file"):
+        if _is_pbf(Path(source["file"])):
+            return network_xml(Path(source["file"]), cache)
         return to_osm_xml(Path(source["file"]), cache)
     from .overpass import fetch_osm
 
@@ -307,7 +313,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
             natural = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, grid.z.copy())
         progress("features", 0.0, "reading buildings and scenery")
         with T.stage("features"):
-            feats = _read_features(source, osm_xml, frame, bbox)
+            feats = _read_features(source, osm_xml, frame, bbox, cfg.cache_path)
         progress("buildings", 0.0, "extruding buildings")
         with T.stage("buildings_plan"):
             bplan = plan_buildings(feats, bounds)
@@ -442,18 +448,23 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
     return world
 
 
-def _read_features(source: dict, osm_xml: Path, frame, bbox):
-    """Buildings and scenery, read from the OSM source itself when it is PBF (the same data
-    as the XML netconvert reads, and read twice as fast), else, or when the PBF is not in
-    the id order pyosmium's area assembly needs (an edited extract), from the sorted XML."""
+def _is_pbf(f: Path) -> bool:
+    return f.name.lower().endswith(".pbf") and f.is_file()
+
+
+def _read_features(source: dict, osm_xml: Path, frame, bbox, cache: Path):
+    """Buildings and scenery, read from the OSM source itself when it is PBF (read twice as
+    fast as XML), else, or when the PBF is not in the id order pyosmium's area assembly
+    needs (an edited extract), from the whole source converted to sorted XML."""
     from .osm_features import extract_features
+    from .osm_file import to_osm_xml
 
     f = Path(source.get("file") or osm_xml)
-    if source["kind"] in ("preset", "file") and f.name.lower().endswith(".pbf") and f.is_file():
+    if source["kind"] in ("preset", "file") and _is_pbf(f):
         try:
             return extract_features(f, frame, bbox)
         except DataError:       # "Way IDs out of order": the XML conversion is sorted
-            pass
+            osm_xml, _ = to_osm_xml(f, cache)
     return extract_features(osm_xml, frame, bbox)
 
 

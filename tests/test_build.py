@@ -879,6 +879,60 @@ def test_osm_conversion_counts_ways_as_osmium_does(helsinki):
             assert count_xml(xml, chunk=chunk) == {k: info[k] for k in ("ways", "relations", "highway_ways")}
 
 
+def _net_body(path: Path) -> str:
+    """A .net.xml without netconvert's header comment (which names its input file)."""
+    text = path.read_text()
+    return text[text.index("<net ") if "<net " in text else 0:]
+
+
+@pytest.mark.parametrize("src", ["netgen/presets/kouvola.osm.pbf", "osm/monaco-2022.osm.pbf"])
+def test_netconvert_makes_the_same_network_from_the_network_extract(tmp_path, src):
+    """netconvert is given only the ways, relations and nodes it reads (network_xml): its
+    network is the same file, byte for byte after the header, as from the whole extract, and
+    the extract leaves out the buildings."""
+    from netgen import sumo_net
+    from netgen.frame import WorldFrame
+    from netgen.osm_file import network_xml, to_osm_xml
+
+    pbf = REPO / src if src.startswith("netgen/") else shared_file(src)
+    centre = (60.5300, 26.9450) if "kouvola" in src else (43.7384, 7.4246)       # the preset's centre
+    frame = WorldFrame(*centre, 1000.0)
+    bbox = frame.bbox_lonlat(frame.extent(frame.ring(1)), margin_m=50.0)
+    full, _ = to_osm_xml(pbf, tmp_path)
+    part, info = network_xml(pbf, tmp_path)
+    assert part.stat().st_size < 0.5 * full.stat().st_size
+    buildings = 0
+    for w in osmium.FileProcessor(str(part), osmium.osm.WAY):
+        buildings += "building" in w.tags and not any(k in w.tags for k in ("highway", "railway"))
+    assert buildings == 0 and info["network_ways"] > 300
+    nets = []
+    for name, osm in (("full", full), ("part", part)):
+        out = tmp_path / f"{name}.net.xml"
+        subprocess.run(sumo_net.netconvert_args(osm, out, frame.proj_string, bbox), check=True,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=sumo_net.sumo_env())
+        nets.append(_net_body(out))
+    assert nets[0].count("<edge ") > 500 and nets[0] == nets[1]
+    # cached: the second call reads nothing
+    assert network_xml(pbf, tmp_path) == (part, info)
+
+
+def test_pbf_without_roads_and_truncated_pbf(tmp_path):
+    """The PBF path (the network extract) words bad input as the XML path does."""
+    w = osmium.SimpleWriter(str(tmp_path / "hut.osm.pbf"))
+    for i, (lat, lon) in enumerate(((60.0, 25.0), (60.0, 25.0002), (60.0001, 25.0002)), start=1):
+        w.add_node(osmium.osm.mutable.Node(id=i, location=(lon, lat), version=1))
+    w.add_way(osmium.osm.mutable.Way(id=10, nodes=[1, 2, 3, 1], tags={"building": "hut"}, version=1))
+    w.close()
+    r = _cli(["build", "--osm", "hut.osm.pbf", "--flat", "--out", "w"], tmp_path, {"COSIM_CACHE": str(tmp_path / "c")})
+    assert r.returncode == 2 and "no roads" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    src = (REPO / "netgen/presets/helsinki-2019.osm.pbf").read_bytes()
+    (tmp_path / "cut.osm.pbf").write_bytes(src[: len(src) * 3 // 4])
+    r = _cli(["build", "--osm", "cut.osm.pbf", "--flat", "--out", "w"], tmp_path, {"COSIM_CACHE": str(tmp_path / "c2")})
+    assert r.returncode == 2 and "corrupt or truncated" in r.stderr, r.stderr
+    assert not (tmp_path / "w" / "world.json").exists()
+    assert not [f for f in (tmp_path / "c2" / "osm").iterdir() if ".network." in f.name]
+
+
 def test_levelling_looks_up_only_nodes_near_roads_with_the_same_result(tmp_path):
     """level_under_roads queries only the grid nodes near a road point: the heights and
     figures are those of querying every node (Monaco's SRTM terrain and network)."""
