@@ -916,6 +916,37 @@ def test_netconvert_makes_the_same_network_from_the_network_extract(tmp_path, sr
     assert network_xml(pbf, tmp_path) == (part, info)
 
 
+def test_pbf_out_of_id_order_builds_the_same_world(tmp_path):
+    """A PBF whose ways are not in id order (an edited extract): the network extract does not
+    mind, and the buildings and scenery, which pyosmium's area assembly reads only from sorted
+    input, come from the sorted XML conversion made for them. Same counts as the sorted file."""
+    src = REPO / "netgen/presets/kouvola.osm.pbf"
+    ways, rels = [], []
+    for o in osmium.FileProcessor(str(src), osmium.osm.WAY | osmium.osm.RELATION):
+        if o.is_way():
+            ways.append(o.replace(nodes=[n.ref for n in o.nodes], tags=dict(o.tags)))
+        else:
+            rels.append(o.replace(members=[(m.type, m.ref, m.role) for m in o.members], tags=dict(o.tags)))
+    shuffled = tmp_path / "kouvola-shuffled.osm.pbf"
+    w = osmium.SimpleWriter(str(shuffled))
+    for n in osmium.FileProcessor(str(src), osmium.osm.NODE):
+        w.add_node(n)
+    for o in reversed(ways):
+        w.add_way(o)
+    for o in rels:
+        w.add_relation(o)
+    w.close()
+    counts = []
+    for name, f in (("sorted", src), ("shuffled", shuffled)):
+        cfg = WorldConfig(osm=str(f), center=(60.53, 26.945), flat=True, chunks=0, out=str(tmp_path / name),
+                          cache_dir=str(tmp_path / f"c-{name}"))
+        counts.append(build_world(cfg)["counts"])
+        made = sorted(p.name for p in (tmp_path / f"c-{name}" / "osm").iterdir())
+        sorted_xml = [m for m in made if m.endswith(".osm") and not m.endswith(".network.osm")]
+        assert bool(sorted_xml) == (name == "shuffled"), made       # the fallback's conversion
+    assert counts[0] == counts[1] and counts[0]["buildings"] > 300 and counts[0]["road_edges"] > 100
+
+
 def test_pbf_without_roads_and_truncated_pbf(tmp_path):
     """The PBF path (the network extract) words bad input as the XML path does."""
     w = osmium.SimpleWriter(str(tmp_path / "hut.osm.pbf"))
