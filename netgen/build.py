@@ -494,6 +494,15 @@ class _Netconvert:
         self.t0 = time.perf_counter()
         self.proc, self.errf = self.sumo_net.start_netconvert(
             self.osm_xml, self.net_file, self.proj, self.bbox, log=self.net_file.parent / "netconvert.log")
+        # its exit time, for its timing: a thread waits for it (the build's own checks come
+        # when the build is free, up to a second later)
+        import threading
+
+        def watch(proc=self.proc):
+            proc.wait()
+            self.t_end = self.t_end or time.perf_counter()
+
+        threading.Thread(target=watch, daemon=True, name="netconvert-watch").start()
 
     def read_net(self):
         """The network without its internal junctions (nothing meshes them); its internal
@@ -517,7 +526,7 @@ class _Netconvert:
         self.running()
         proc, self.proc = self.proc, None
         warnings = self.sumo_net.finish_netconvert(proc, self.errf, self.net_file)
-        if T is not None:       # its run time, to when it was first seen finished
+        if T is not None:       # its run time, to its exit
             T.t["netconvert"] = round((self.t_end or time.perf_counter()) - self.t0, 3)
         with atomic_path(self.cache) as p:
             shutil.copyfile(self.net_file, p)
