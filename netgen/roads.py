@@ -74,6 +74,7 @@ END_FADE_M = 10.0
 #: back to its own over this length (:func:`_conform_to_higher_roads`), and stays this far under it
 CONFORM_FADE_M = 15.0
 CONFORM_BELOW_M = 0.02
+SOFT_STEP_M = 0.15               # (a path drawn into a vehicle lane, this far off its height: left out there)
 CONFORM_MAX_M = 1.6             # (further apart than this somewhere: a bridge over a road, both kept)
 CONFORM_MIN_OVERLAP_M = 1.0     # (of the cross-section inside the other road's lane: a sliver
                                 # where two roads' lanes graze near a junction does not count)
@@ -1092,9 +1093,13 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, lane_edge[cg], hw,
                                           lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0],
                                           lower_only=True, only=drive[cg])
-    # the pieces of sidewalks that lie on another road's carriageway are left out, and do not
-    # hold the ground up either
-    seg_keep, pt_keep = _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges, jrings)
+    # the pieces of sidewalks, footways, paths and cycleways (lanes no car uses) that lie on
+    # another road's carriageway are left out, and do not hold the ground up either (a
+    # footbridge over Avenue du Port, kept on the ground, stood 0.7-1.5 m above the road
+    # under it: a slab in a car's way)
+    soft = ~drive & ~rail
+    seg_keep, pt_keep = _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges, jrings,
+                                                   soft=soft, cz=cz)
     # support points for levelling and for junction heights: centrelines and lane corners
     Ck, czk, hwk, nk = C[pt_keep], cz[pt_keep], hw[pt_keep], nrm[pt_keep]
     tk = tilt[pt_keep] * np.hypot(nk[:, 0], nk[:, 1])
@@ -1299,7 +1304,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
         pm = mask[cg]
         at = np.nonzero(pm)[0]
         v, f, fg = _strips(C[pm], remap[cg[pm]], cz[pm], hw[pm], lift,
-                           seg_mask=seg_keep[at[:-1]] if kind == "sidewalk" else None, tilt=tilt[pm])
+                           seg_mask=seg_keep[at[:-1]] if kind != "rail" else None, tilt=tilt[pm])
         parts[kind].append(_part(kind, v, f, fg, len(sel), [ids[k] for k in sel], ["lane"] * len(sel),
                                  [osm[k] for k in sel], cent[sel]))
 
@@ -1421,7 +1426,7 @@ def _ends_on_planes(edges, lanes, lane_edge, C, cg, cz, cs, ctot, unit_left, pla
     return tilt
 
 
-def _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges, jrings):
+def _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges, jrings, soft=None, cz=None):
     """Which pieces of the sidewalks to mesh: (per segment i -> i+1 of the resampled lane
     centrelines `C`, per point) masks, False for a sidewalk's segment that reaches more than
     :data:`SIDEWALK_INTRUSION_M` into a vehicle lane of another edge, or into a junction
@@ -1432,14 +1437,22 @@ def _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges,
     road's two directions are mapped as two ways a few metres apart: the sidewalk between them
     then lies on the other carriageway (Monaco, Helsinki: a few thousand m2 each). On a
     hillside the two carriageways are at different heights, and such a sidewalk stood 1.4 m
-    above the other one's lane, a wall that a car drove into."""
+    above the other one's lane, a wall that a car drove into.
+
+    The other lanes no car uses (`soft`: footways, paths, cycleways; heights `cz`) lose such a
+    segment only where it is more than :data:`SOFT_STEP_M` above or below the vehicle lane
+    it reaches into: a footbridge over Avenue du Port, kept on the ground, stood 0.7-1.5 m
+    above the road under it, a slab in a car's way (a path level with the road is left: on
+    flat Helsinki, paths and cycleways drawn into a carriageway cover 19,000 m²)."""
     n = len(C)
     seg_keep = np.ones(max(n - 1, 0), dtype=bool)
     pt_keep = np.ones(n, dtype=bool)
     veh = np.nonzero(drive & (np.array([ln.width for ln in lanes]) / 2.0 > SIDEWALK_INTRUSION_M + 0.05))[0]
-    if n < 2 or not side.any() or not len(veh):
+    only_side = soft is None
+    soft = side if soft is None else (soft | side)
+    if n < 2 or not soft.any() or not len(veh):
         return seg_keep, pt_keep
-    seg = np.nonzero((cg[1:] == cg[:-1]) & side[cg[:-1]])[0]
+    seg = np.nonzero((cg[1:] == cg[:-1]) & soft[cg[:-1]])[0]
     if not len(seg):
         return seg_keep, pt_keep
     quads = shapely.polygons(np.stack([C[seg] + nrm[seg], C[seg + 1] + nrm[seg + 1], C[seg + 1] - nrm[seg + 1],
@@ -1450,8 +1463,20 @@ def _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges,
     other = lane_edge[cg[seg[qi]]] != lane_edge[veh[vi]]    # out, then the geometry)
     qi, vi = qi[other], vi[other]
     hit = shapely.intersects(cores[vi], quads[qi])
-    seg_keep[seg[qi[hit]]] = False
-    if jrings:
+    qi, vi = qi[hit], vi[hit]
+    if not only_side:       # a path, cycleway, ...: only where it stands off the vehicle lane
+        path = ~side[cg[seg[qi]]]
+        if path.any():
+            mid = 0.5 * (C[seg[qi[path]]] + C[seg[qi[path]] + 1])
+            zl = _onto_profiles(C, cg, cz, mid, veh[vi[path]])[0]
+            zs = 0.5 * (cz[seg[qi[path]]] + cz[seg[qi[path]] + 1])
+            keep_hit = np.ones(len(qi), dtype=bool)
+            keep_hit[np.flatnonzero(path)] = np.isfinite(zl) & (np.abs(zs - zl) > SOFT_STEP_M)
+            qi = qi[keep_hit]
+    seg_keep[seg[qi]] = False
+    if jrings and side.any():
+        sm = side[cg[seg]]                  # (into a junction: the sidewalks only, as before)
+        seg, quads = seg[sm], quads[sm]
         jids = list(jrings)
         JP, jg = _concat([jrings[j] for j in jids])
         jp = shapely.polygons(shapely.linearrings(JP, indices=jg))
@@ -1478,7 +1503,7 @@ def _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges,
     alone = np.ones(n, dtype=bool)          # (a lane of one point has no segment to lose)
     alone[:-1] &= ~same
     alone[1:] &= ~same
-    pt_keep = next_ok | prev_ok | alone | ~side[cg]
+    pt_keep = next_ok | prev_ok | alone | ~soft[cg]
     return seg_keep, pt_keep
 
 

@@ -351,6 +351,45 @@ def test_monaco_with_srtm(tmp_path):
     _check_turns_have_road(out, w)
     _check_tunnels_not_meshed(out, w)
     _check_lanes_not_steeper_than_streets(out, w)
+    _check_no_path_slab_over_vehicle_lanes(out, w)
+
+
+def _check_no_path_slab_over_vehicle_lanes(out: Path, w: dict):
+    """Where a lane no car uses (a footway, path, cycleway) lies within 0.8 m in plan of
+    another road's vehicle lane, it is level with it (within 0.6 m): a footbridge mapped over
+    Avenue du Port (way 167625745, kept on the ground) stood 0.7-1.5 m above the lanes under
+    it, a slab in a car's way; its pieces on the carriageway are now left out."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    from cosim.world import World
+
+    net = read_net(out / w["net_file"])
+    car = {ln.id: ln.drivable for e in net.edges.values() for ln in e.lanes}
+    world = World(out)
+    P, Z, edge, is_car = [], [], [], []
+    for c in world.chunks.values():
+        for tile in c.get("tiles", {}).values():
+            if "asphalt" not in tile:
+                continue
+            scene = trimesh.load(c["_base"] / tile["asphalt"], group_material=False, split_groups=True,
+                                 process=False, force="scene")
+            for name, g in scene.geometry.items():
+                if name.startswith("lane/"):
+                    lane = name.split("/", 1)[1]
+                    C = g.triangles_center
+                    P.append(C[:, :2])
+                    Z.append(C[:, 2])
+                    e = lane.rsplit("_", 1)[0]
+                    edge += [e[1:] if e.startswith("-") else e] * len(C)
+                    is_car += [car[lane]] * len(C)
+    P, Z, edge, is_car = np.vstack(P), np.concatenate(Z), np.array(edge), np.array(is_car)
+    assert (~is_car).sum() > 1000
+    pairs = cKDTree(P).query_pairs(0.8, output_type="ndarray")
+    mixed = (is_car[pairs[:, 0]] != is_car[pairs[:, 1]]) & (edge[pairs[:, 0]] != edge[pairs[:, 1]])
+    dz = np.abs(Z[pairs[mixed, 0]] - Z[pairs[mixed, 1]])
+    bad = pairs[mixed][dz > 0.6]
+    assert not len(bad), sorted({(edge[a], edge[b]) for a, b in bad})[:5]
 
 
 def _check_lanes_not_steeper_than_streets(out: Path, w: dict):
