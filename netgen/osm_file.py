@@ -148,6 +148,26 @@ def count_xml(path: Path, chunk: int = 1 << 22) -> dict:
     return {"ways": n_way, "relations": n_rel, "highway_ways": n_hw}
 
 
+def _cache_entry(path: Path, cache_dir: Path, ext: str, marker_ext: str):
+    """(resolved path, its sha256, the cache file and its marker, the marker's info if both
+    are there and it reads, else None) for a file converted from `path` into the cache. The
+    marker is written after the file is in place, so a file without it is not trusted."""
+    import json
+
+    path = Path(path).resolve()
+    _check_readable(path)
+    digest = file_hash(path)
+    out = Path(cache_dir) / "osm" / f"{digest[:24]}{ext}"
+    marker = Path(cache_dir) / "osm" / f"{digest[:24]}{marker_ext}"
+    info = None
+    if marker.exists() and out.exists():
+        try:
+            info = json.loads(marker.read_text())
+        except ValueError:
+            pass
+    return path, digest, out, marker, info
+
+
 def to_osm_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
     """Check `path` and return (OSM XML file netconvert can read, info with the sha256).
 
@@ -158,16 +178,9 @@ def to_osm_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
 
     from ._atomic import write_text
 
-    path = Path(path).resolve()
-    _check_readable(path)
-    digest = file_hash(path)
-    out = Path(cache_dir) / "osm" / f"{digest[:24]}.osm"
-    marker = Path(cache_dir) / "osm" / f"{digest[:24]}.scan"
-    if marker.exists() and out.exists():
-        try:
-            return out, json.loads(marker.read_text())
-        except ValueError:
-            pass
+    path, digest, out, marker, info = _cache_entry(path, cache_dir, ".osm", ".scan")
+    if info is not None:
+        return out, info
     with atomic_path(out) as tmp:
         w = osmium.SimpleWriter(osmium.io.File(str(tmp), "osm"), overwrite=True)
         try:
@@ -223,16 +236,9 @@ def network_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
 
     from ._atomic import write_text
 
-    path = Path(path).resolve()
-    _check_readable(path)
-    digest = file_hash(path)
-    out = Path(cache_dir) / "osm" / f"{digest[:24]}.network.osm"
-    marker = Path(cache_dir) / "osm" / f"{digest[:24]}.network.json"
-    if marker.exists() and out.exists():
-        try:
-            return out, json.loads(marker.read_text())
-        except ValueError:
-            pass
+    path, digest, out, marker, info = _cache_entry(path, cache_dir, ".network.osm", ".network.json")
+    if info is not None:
+        return out, info
     with atomic_path(out) as tmp:
         try:
             counts = _write_network(path, tmp)

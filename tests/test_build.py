@@ -354,35 +354,39 @@ def test_monaco_with_srtm(tmp_path):
     _check_no_path_slab_over_vehicle_lanes(out, w)
 
 
+def _lane_meshes(out: Path):
+    """(lane id, mesh) of every lane piece of the world's asphalt tiles."""
+    import trimesh
+
+    from cosim.world import World
+
+    for c in World(out).chunks.values():
+        for tile in c.get("tiles", {}).values():
+            if "asphalt" in tile:
+                scene = trimesh.load(c["_base"] / tile["asphalt"], group_material=False, split_groups=True,
+                                     process=False, force="scene")
+                for name, g in scene.geometry.items():
+                    if name.startswith("lane/"):
+                        yield name.split("/", 1)[1], g
+
+
 def _check_no_path_slab_over_vehicle_lanes(out: Path, w: dict):
     """Where a lane no car uses (a footway, path, cycleway) lies within 0.8 m in plan of
     another road's vehicle lane, it is level with it (within 0.6 m): a footbridge mapped over
     Avenue du Port (way 167625745, kept on the ground) stood 0.7-1.5 m above the lanes under
     it, a slab in a car's way; its pieces on the carriageway are now left out."""
-    import trimesh
     from scipy.spatial import cKDTree
-
-    from cosim.world import World
 
     net = read_net(out / w["net_file"])
     car = {ln.id: ln.drivable for e in net.edges.values() for ln in e.lanes}
-    world = World(out)
     P, Z, edge, is_car = [], [], [], []
-    for c in world.chunks.values():
-        for tile in c.get("tiles", {}).values():
-            if "asphalt" not in tile:
-                continue
-            scene = trimesh.load(c["_base"] / tile["asphalt"], group_material=False, split_groups=True,
-                                 process=False, force="scene")
-            for name, g in scene.geometry.items():
-                if name.startswith("lane/"):
-                    lane = name.split("/", 1)[1]
-                    C = g.triangles_center
-                    P.append(C[:, :2])
-                    Z.append(C[:, 2])
-                    e = lane.rsplit("_", 1)[0]
-                    edge += [e[1:] if e.startswith("-") else e] * len(C)
-                    is_car += [car[lane]] * len(C)
+    for lane, g in _lane_meshes(out):
+        C = g.triangles_center
+        P.append(C[:, :2])
+        Z.append(C[:, 2])
+        e = lane.rsplit("_", 1)[0]
+        edge += [e[1:] if e.startswith("-") else e] * len(C)
+        is_car += [car[lane]] * len(C)
     P, Z, edge, is_car = np.vstack(P), np.concatenate(Z), np.array(edge), np.array(is_car)
     assert (~is_car).sum() > 1000
     pairs = cKDTree(P).query_pairs(0.8, output_type="ndarray")
@@ -398,27 +402,14 @@ def _check_lanes_not_steeper_than_streets(out: Path, w: dict):
     grade, with it at most 52 % (the profile's 25 %, plus what the junctions' planes add along
     the edge and the lane's tilt across). Over all of Monaco's vehicle lanes, faces steeper
     than 70 % cover 153 m² without the limit and 30 m² with it (at lane ends and hairpins)."""
-    import trimesh
-
-    from cosim.world import World
-
-    world = World(out)
     steep70 = 0.0
     pasteur = []
-    for c in world.chunks.values():
-        for tile in c.get("tiles", {}).values():
-            if "asphalt" not in tile:
-                continue
-            scene = trimesh.load(c["_base"] / tile["asphalt"], group_material=False, split_groups=True,
-                                 process=False, force="scene")
-            for name, g in scene.geometry.items():
-                if not name.startswith("lane/"):
-                    continue
-                n = g.face_normals
-                grade = np.hypot(n[:, 0], n[:, 1]) / np.maximum(np.abs(n[:, 2]), 1e-9)
-                steep70 += float(g.area_faces[grade > 0.7].sum())
-                if name.split("/", 1)[1].startswith(("-201009264#3_", "201009264#3_")):
-                    pasteur.append(grade)
+    for lane, g in _lane_meshes(out):
+        n = g.face_normals
+        grade = np.hypot(n[:, 0], n[:, 1]) / np.maximum(np.abs(n[:, 2]), 1e-9)
+        steep70 += float(g.area_faces[grade > 0.7].sum())
+        if lane.startswith(("-201009264#3_", "201009264#3_")):
+            pasteur.append(grade)
     assert pasteur and max(float(g.max()) for g in pasteur) < 0.6, [float(g.max()) for g in pasteur]
     assert steep70 < 60.0, steep70
 
