@@ -354,22 +354,6 @@ def test_monaco_with_srtm(tmp_path):
     _check_no_path_slab_over_vehicle_lanes(out, w)
 
 
-def _lane_meshes(out: Path):
-    """(lane id, mesh) of every lane piece of the world's asphalt tiles."""
-    import trimesh
-
-    from cosim.world import World
-
-    for c in World(out).chunks.values():
-        for tile in c.get("tiles", {}).values():
-            if "asphalt" in tile:
-                scene = trimesh.load(c["_base"] / tile["asphalt"], group_material=False, split_groups=True,
-                                     process=False, force="scene")
-                for name, g in scene.geometry.items():
-                    if name.startswith("lane/"):
-                        yield name.split("/", 1)[1], g
-
-
 def _check_no_path_slab_over_vehicle_lanes(out: Path, w: dict):
     """Where a lane no car uses (a footway, path, cycleway) lies within 0.8 m in plan of
     another road's vehicle lane, it is level with it (within 0.6 m): a footbridge mapped over
@@ -380,7 +364,8 @@ def _check_no_path_slab_over_vehicle_lanes(out: Path, w: dict):
     net = read_net(out / w["net_file"])
     car = {ln.id: ln.drivable for e in net.edges.values() for ln in e.lanes}
     P, Z, edge, is_car = [], [], [], []
-    for lane, g in _lane_meshes(out):
+    for name, g in _tile_meshes(out, "asphalt", "lane/"):
+        lane = name.split("/", 1)[1]
         C = g.triangles_center
         P.append(C[:, :2])
         Z.append(C[:, 2])
@@ -404,7 +389,8 @@ def _check_lanes_not_steeper_than_streets(out: Path, w: dict):
     than 70 % cover 153 m² without the limit and 30 m² with it (at lane ends and hairpins)."""
     steep70 = 0.0
     pasteur = []
-    for lane, g in _lane_meshes(out):
+    for name, g in _tile_meshes(out, "asphalt", "lane/"):
+        lane = name.split("/", 1)[1]
         n = g.face_normals
         grade = np.hypot(n[:, 0], n[:, 1]) / np.maximum(np.abs(n[:, 2]), 1e-9)
         steep70 += float(g.area_faces[grade > 0.7].sum())
