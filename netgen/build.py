@@ -342,7 +342,6 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         gc_frozen = _gc_freeze()        # (again before the forks)
         with T.stage("net_read"):
             net = nc.read_net()
-        nc.running()
         counts = net.counts()
         if counts["road_edges"] == 0:
             raise DataError(f"no drivable road in the area (bbox {bbox[0]:.5f},{bbox[1]:.5f},{bbox[2]:.5f},{bbox[3]:.5f})")
@@ -361,7 +360,6 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
                                     on_support=lambda pts, hw, car, tris: streams.level(pts, hw, car, tris, T,
                                                                                    buildings.lift))
             T.t["roads"] = round(T.t["roads"] - T.t.get("terrain_level", 0.0), 3)
-            nc.running()
             with T.stage("road_tiles_plan"):
                 road_tiles = _RoadTiles(chunks, bounds, roads, TILE_M)
             streams.fork("cosim-tiles", lambda: (road_tiles.write_claimed(tmp, streams),
@@ -369,11 +367,9 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
             progress("write", 0.0, "writing chunks")
             with T.stage("write"):
                 tiles = road_tiles.write_claimed(tmp, streams)          # what nobody has taken
-                nc.running()
                 with T.stage("terrain_wait"):
                     streams.wait_terrain()
                 entries = _write_terrain(tmp, chunks, bounds, grid)
-                nc.running()
                 bfiles = buildings.write_claimed(tmp, streams)
             # netconvert writes the rest of its file (connections) meanwhile: only now check
             # that it succeeded (and cache its output)
@@ -523,7 +519,6 @@ class _Netconvert:
             if T is not None:
                 T.t["netconvert"] = 0.0
             return json.loads(self.warn.read_text())
-        self.running()
         proc, self.proc = self.proc, None
         warnings = self.sumo_net.finish_netconvert(proc, self.errf, self.net_file)
         if T is not None:       # its run time, to its exit
@@ -534,13 +529,8 @@ class _Netconvert:
         return warnings
 
     def running(self) -> bool:
-        """Still running? (Also notes when it was first seen finished, for its timing.)"""
-        if self.proc is None:
-            return False
-        if self.proc.poll() is None:
-            return True
-        self.t_end = self.t_end or time.perf_counter()
-        return False
+        """Still running? (Its exit time is noted by the thread that waits for it.)"""
+        return self.proc is not None and self.proc.poll() is None
 
     def kill(self) -> None:
         if self.proc is not None and self.proc.poll() is None:

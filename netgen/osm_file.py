@@ -36,6 +36,13 @@ def _suffix_ok(path: Path) -> bool:
     return any(name.endswith(s) for s in SUFFIXES)
 
 
+def _corrupt(path: Path, e: Exception) -> DataError:
+    """The one-line error for a file libosmium could not read (a parse error, a truncated
+    block: RuntimeError subclasses)."""
+    msg = " ".join(str(e).split())[:200]
+    return DataError(f"OSM file {path.name} is corrupt or truncated ({msg})")
+
+
 def _check_readable(path: Path) -> None:
     if not path.exists():
         raise DataError(f"OSM file not found: {path}")
@@ -89,8 +96,7 @@ def scan(path: Path) -> dict:
     try:
         c.apply_file(str(path))
     except Exception as e:  # osmium raises RuntimeError subclasses for parse errors
-        msg = " ".join(str(e).split())[:200]
-        raise DataError(f"OSM file {path.name} is corrupt or truncated ({msg})") from None
+        raise _corrupt(path, e) from None
     if c.nodes == 0 or c.ways == 0:
         raise DataError(f"OSM file {path.name} has no map data ({c.nodes} nodes, {c.ways} ways)")
     return {"nodes": c.nodes, "ways": c.ways, "relations": c.relations, "highway_ways": c.highways,
@@ -188,8 +194,7 @@ def to_osm_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
             r.add_file(str(path))
             r.apply(w)
         except Exception as e:    # libosmium: a parse error, a truncated block (RuntimeError subclasses)
-            msg = " ".join(str(e).split())[:200]
-            raise DataError(f"OSM file {path.name} is corrupt or truncated ({msg})") from None
+            raise _corrupt(path, e) from None
         finally:
             w.close()
         counts = count_xml(tmp)
@@ -245,8 +250,7 @@ def network_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
         except DataError:
             raise
         except Exception as e:    # libosmium: a parse error, a truncated block
-            msg = " ".join(str(e).split())[:200]
-            raise DataError(f"OSM file {path.name} is corrupt or truncated ({msg})") from None
+            raise _corrupt(path, e) from None
         if counts["network_ways"] == 0:
             scan(path)          # no map data at all: its error; else netconvert says "no roads"
     info = {**counts, "sha256": digest}

@@ -1098,8 +1098,8 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     # footbridge over Avenue du Port, kept on the ground, stood 0.7-1.5 m above the road
     # under it: a slab in a car's way)
     soft = ~drive & ~rail
-    seg_keep, pt_keep = _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges, jrings,
-                                                   soft=soft, cz=cz)
+    seg_keep, pt_keep = _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_edge, edges,
+                                                   jrings)
     # support points for levelling and for junction heights: centrelines and lane corners
     Ck, czk, hwk, nk = C[pt_keep], cz[pt_keep], hw[pt_keep], nrm[pt_keep]
     tk = tilt[pt_keep] * np.hypot(nk[:, 0], nk[:, 1])
@@ -1426,7 +1426,7 @@ def _ends_on_planes(edges, lanes, lane_edge, C, cg, cz, cs, ctot, unit_left, pla
     return tilt
 
 
-def _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges, jrings, soft=None, cz=None):
+def _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_edge, edges, jrings):
     """Which pieces of the sidewalks to mesh: (per segment i -> i+1 of the resampled lane
     centrelines `C`, per point) masks, False for a sidewalk's segment that reaches more than
     :data:`SIDEWALK_INTRUSION_M` into a vehicle lane of another edge, or into a junction
@@ -1439,7 +1439,8 @@ def _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges,
     hillside the two carriageways are at different heights, and such a sidewalk stood 1.4 m
     above the other one's lane, a wall that a car drove into.
 
-    The other lanes no car uses (`soft`: footways, paths, cycleways; heights `cz`) lose such a
+    The other lanes no car uses (`soft`, which holds the sidewalks `side` too: footways,
+    paths, cycleways; heights `cz`) lose such a
     segment only where it is more than :data:`SOFT_STEP_M` above or below the vehicle lane
     it reaches into: a footbridge over Avenue du Port, kept on the ground, stood 0.7-1.5 m
     above the road under it, a slab in a car's way (a path level with the road is left: on
@@ -1448,8 +1449,6 @@ def _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges,
     seg_keep = np.ones(max(n - 1, 0), dtype=bool)
     pt_keep = np.ones(n, dtype=bool)
     veh = np.nonzero(drive & (np.array([ln.width for ln in lanes]) / 2.0 > SIDEWALK_INTRUSION_M + 0.05))[0]
-    only_side = soft is None
-    soft = side if soft is None else (soft | side)
     if n < 2 or not soft.any() or not len(veh):
         return seg_keep, pt_keep
     seg = np.nonzero((cg[1:] == cg[:-1]) & soft[cg[:-1]])[0]
@@ -1464,15 +1463,14 @@ def _sidewalks_off_other_roads(C, cg, nrm, side, drive, lanes, lane_edge, edges,
     qi, vi = qi[other], vi[other]
     hit = shapely.intersects(cores[vi], quads[qi])
     qi, vi = qi[hit], vi[hit]
-    if not only_side:       # a path, cycleway, ...: only where it stands off the vehicle lane
-        path = ~side[cg[seg[qi]]]
-        if path.any():
-            mid = 0.5 * (C[seg[qi[path]]] + C[seg[qi[path]] + 1])
-            zl = _onto_profiles(C, cg, cz, mid, veh[vi[path]])[0]
-            zs = 0.5 * (cz[seg[qi[path]]] + cz[seg[qi[path]] + 1])
-            keep_hit = np.ones(len(qi), dtype=bool)
-            keep_hit[np.flatnonzero(path)] = np.isfinite(zl) & (np.abs(zs - zl) > SOFT_STEP_M)
-            qi = qi[keep_hit]
+    path = ~side[cg[seg[qi]]]       # a path, cycleway, ...: only where it stands off the vehicle lane
+    if path.any():
+        mid = 0.5 * (C[seg[qi[path]]] + C[seg[qi[path]] + 1])
+        zl = _onto_profiles(C, cg, cz, mid, veh[vi[path]])[0]
+        zs = 0.5 * (cz[seg[qi[path]]] + cz[seg[qi[path]] + 1])
+        keep_hit = np.ones(len(qi), dtype=bool)
+        keep_hit[np.flatnonzero(path)] = np.isfinite(zl) & (np.abs(zs - zl) > SOFT_STEP_M)
+        qi = qi[keep_hit]
     seg_keep[seg[qi]] = False
     if jrings and side.any():
         sm = side[cg[seg]]                  # (into a junction: the sidewalks only, as before)
