@@ -229,7 +229,7 @@ def network_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
     :data:`NETWORK_RELATION_TYPES` with their members among those ways (and their node
     members), and the nodes these use, tags and all. netconvert's network from it is the same
     file as from the whole extract, after the header (checked on the presets, Monaco, Lauf and
-    Portland), made in 0.7-0.9 of the time. (netconvert splits a way where another way it
+    Portland), made in 0.66-0.87 of the time. (netconvert splits a way where another way it
     takes in uses its node, and those are the ways kept here: a key such as ``waterway``
     counts even though no typemap of ours builds it. Dropping the route relations, or their
     members' nodes, changed the buses' permissions on some Monaco lanes.)
