@@ -8,6 +8,7 @@ the next build removes.
 from __future__ import annotations
 
 import errno
+import glob
 import os
 import shutil
 import tempfile
@@ -64,15 +65,34 @@ def _unlink(p):
         pass
 
 
-def remove_stale_temps(folder: Path) -> None:
-    """Remove leftovers of killed writers (``*.tmp-*``) in a folder (not recursive)."""
+def remove_stale_temps(folder: Path, name: str) -> None:
+    """Remove the leftovers of killed builds of `name` in `folder` (not recursive):
+    ``<name>.tmp-<pid>`` and ``<name>.tmp-old-<pid>`` whose process is gone. Another build's
+    folder beside it, or one of the same name whose process still runs, is left alone (two
+    builds into one parent folder at once: the second removed the first's folder while
+    netconvert wrote into it)."""
     if not folder.is_dir():
         return
-    for p in folder.glob("*.tmp-*"):
+    for p in folder.glob(f"{glob.escape(name)}.tmp-*"):
+        pid = p.name.rsplit("-", 1)[-1]
+        if pid.isdigit() and _running(int(pid)):
+            continue
         try:
             shutil.rmtree(p) if p.is_dir() else p.unlink()
         except OSError:
             pass
+
+
+def _running(pid: int) -> bool:
+    if pid == os.getpid():
+        return False            # (this process's own leftover: a build that failed here)
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:             # (another user's process)
+        return True
+    return True
 
 
 def check_writable(folder: Path) -> None:

@@ -273,7 +273,7 @@ NET_FILE = "net/world.net.xml"
 
 def _start(nc, tmp: Path, out: Path, progress) -> None:
     """A fresh temporary world folder, and netconvert (or its cached output) into it."""
-    remove_stale_temps(out.parent)
+    remove_stale_temps(out.parent, out.name)
     if tmp.exists():
         shutil.rmtree(tmp)
     (tmp / "net").mkdir(parents=True)

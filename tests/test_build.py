@@ -929,6 +929,29 @@ def test_killed_build_leaves_nothing_trusted(tmp_path):
     assert not list(tmp_path.glob("w.tmp-*"))
 
 
+def test_a_build_leaves_other_builds_temporary_folders_alone(tmp_path):
+    """Two builds into one parent folder at once: each removes only its own name's leftovers
+    of dead processes (the second build deleted the first's folder while netconvert wrote
+    into it, and the first failed)."""
+    sleeper = subprocess.Popen(["sleep", "60"])
+    try:
+        live_other = tmp_path / f"other.tmp-{sleeper.pid}"             # another build, running
+        live_same = tmp_path / f"w.tmp-{sleeper.pid}"                  # this name, still running
+        dead = subprocess.Popen(["true"])
+        dead.wait()
+        dead_same = tmp_path / f"w.tmp-{dead.pid}"                     # this name, killed
+        dead_old = tmp_path / f"w.tmp-old-{dead.pid}"
+        for d in (live_other, live_same, dead_same, dead_old):
+            (d / "net").mkdir(parents=True)
+        r = _cli(["build", "--preset", "kouvola", "--out", "w", "-q"], tmp_path, {"COSIM_CACHE": str(tmp_path / "c")})
+        assert r.returncode == 0, r.stderr
+        assert live_other.is_dir() and live_same.is_dir()
+        assert not dead_same.exists() and not dead_old.exists()
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+
+
 # ---------------------------------------------------------------------------------------
 # the build's shortcuts give what the plain code gives (outputs stay byte-identical)
 def _monaco_inputs(spacing: float = 5.0):
