@@ -1284,3 +1284,14 @@ def test_prepared_building_files_are_the_plain_writers_files(tmp_path):
                        + "\n" for row in mm.tolist()).encode()
         assert _ascii_lines(b"v ", r.vertices[:50], 3)[0] == want
     assert n > 20
+
+
+def test_cli_output_into_a_closed_pipe_is_no_traceback(tmp_path):
+    """`cosim presets | head -0`: the reader is gone before the first line; the CLI stops
+    without a traceback (Python's BrokenPipeError), with the shell's code for SIGPIPE."""
+    p = subprocess.Popen(CLI + ["presets"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    p.stdout.close()
+    err = p.stderr.read().decode()
+    p.wait(timeout=60)
+    assert "Traceback" not in err and "Error" not in err, err
+    assert p.returncode == 141
