@@ -425,6 +425,10 @@ class TrafficProcess(Component):
             self._prefetched = value
         return status, value
 
+    def busy(self) -> bool:
+        """A request sent (the step) is not answered yet: the worker is still at it."""
+        return bool(self._inflight) and self._conn is not None and not self._conn.poll()
+
     def sync(self):
         """Wait for every request in flight (a step, a pose) to be answered; raise the first
         error among them. Returns the last answer (status, value)."""

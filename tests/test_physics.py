@@ -109,6 +109,40 @@ def test_scenery_colliders_are_one_body_per_tile(monaco_world):
         pw.teardown()
 
 
+def test_tile_loading_is_paced_by_how_near_the_missing_tiles_are(monaco_world):
+    """Tiles ahead come a part per call, only while the caller has time to spare (SUMO still
+    stepping in its worker), until one within ``urgent_radius`` is missing (then a part per
+    call anyway) or one within ``critical_radius`` (then parts within the time budget)."""
+    w = monaco_world
+    pw = PhysicsWorld(w).setup()
+    try:
+        k0 = next(k for k in w.tiles_within(0.0, 0.0, 10.0) if w.is_built(k))
+        xmin, ymin, xmax, ymax = w.tile_bounds(k0)
+        x, y = xmax - 45.0, (ymin + ymax) / 2      # 45 m from k0's east edge
+        k1 = next(k for k in w.tiles_within(xmax + 1.0, y, 0.5) if w.is_built(k))
+        assert w.tiles_within(x, y, 30.0) == [k0] and set(w.tiles_within(x, y, 60.0)) == {k0, k1}
+        pw.load_tile(k0)
+        pw.load_tile(k1)
+        kw = dict(unload_radius=2000.0, budget_ms=1000.0, urgent_radius=60.0, critical_radius=30.0)
+        r = pw.update(x, y, 400.0, spare=lambda: False, **kw)     # no time to spare: nothing
+        assert r["loaded"] == 0 and not pw._loading and r["pending"] > 0
+        r = pw.update(x, y, 400.0, spare=lambda: True, **kw)      # time to spare: one part
+        assert r["loaded"] == 0 and len(pw._loading) == 1
+        (far, job), = pw._loading.items()
+        assert len(pw._loading[far][0].kinds) <= 1
+        # k1 missing (within the urgent radius): one part a call, time to spare or not
+        pw.unload_tile(k1)
+        r = pw.update(x, y, 400.0, spare=lambda: False, **kw)
+        assert r["loaded"] == 0 and k1 in pw._loading and k1 not in pw.tiles
+        assert len(pw._loading[k1][0].kinds) <= 1 and len(pw._loading[far][0].kinds) <= 1
+        # k0 missing (within the critical radius): parts within the budget
+        pw.unload_tile(k0)
+        r = pw.update(x, y, 400.0, spare=lambda: False, **kw)
+        assert k0 in pw.tiles and k1 in pw.tiles and r["loaded"] >= 2 and pw.covered(x, y, 60.0)
+    finally:
+        pw.teardown()
+
+
 def test_tiles_load_a_part_at_a_time_within_the_budget(monaco_world):
     """With a budget smaller than a tile, ``update`` makes one part of a tile per call (the
     terrain, each mesh class, the scenery); a tile counts as loaded, and ``covered``, only

@@ -3,6 +3,7 @@
 A short version of the reliability drive: across a chunk border with traffic."""
 from __future__ import annotations
 
+import gc
 import json
 import math
 import os
@@ -43,8 +44,12 @@ def test_drive_across_a_chunk_border_with_traffic(motorway_world, tmp_path, para
     tel = tmp_path / "run.jsonl"
     cfg = SimConfig(world_dir=str(motorway_world), traffic="light", seed=3, speed_mps=25.0, duration_s=70.0,
                     telemetry=str(tel), parallel_sumo=parallel)
+    frozen0 = gc.get_freeze_count()
     sim = Simulation(cfg).setup()
     assert sim._pipelined == parallel
+    # what setup made is out of the garbage collector's sight while the car drives (a full
+    # collection scanned it in one frame), and back at teardown
+    assert frozen0 > 0 or gc.get_freeze_count() > 10000
     mirror_checked = chains_checked = 0
     try:
         sumo = sim.traffic.sumo
@@ -97,6 +102,7 @@ def test_drive_across_a_chunk_border_with_traffic(motorway_world, tmp_path, para
         summary = sim.finish()
     finally:
         sim.teardown()
+    assert gc.get_freeze_count() == frozen0
     assert chains_checked > 20                    # (trucks on the motorway)
     assert mirror_checked > 20
     assert gap < 3.0                              # the ego is in SUMO where physics has it
