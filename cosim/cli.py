@@ -323,7 +323,9 @@ def main(argv=None) -> int:
         p.print_help()
         return 0
     try:
-        return a.func(a) or 0
+        rc = a.func(a) or 0
+        sys.stdout.flush()          # (a closed pipe shows here, not at the interpreter's exit)
+        return rc
     except CosimError as e:
         if os.environ.get("COSIM_DEBUG"):
             raise
