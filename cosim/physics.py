@@ -161,17 +161,20 @@ class PhysicsWorld:
         budget = self.load_budget_ms if budget_ms is None else budget_ms
         want = [k for k in self.world.tiles_within(x, y, keep_radius) if self.world.is_built(k)]
 
+        todo = [k for k in want if k not in self.tiles or (stale and k in self._stale)]
+
         def missing(r):
             return any(k not in self.tiles for k in self.world.tiles_within(x, y, r) if self.world.is_built(k))
 
-        hurry = urgent_radius is None or critical_radius is None or budget >= UNPACED_MS or missing(critical_radius)
-        go = hurry or missing(urgent_radius) or spare is None or spare()
+        hurry = go = False
+        if todo:        # (the radii looked at only when there is something to load)
+            hurry = urgent_radius is None or critical_radius is None or budget >= UNPACED_MS \
+                or missing(critical_radius)
+            go = hurry or missing(urgent_radius) or spare is None or spare()
         t0 = time.perf_counter()
         loaded = parts = 0
-        for k in want:
-            if k in self.tiles and (k not in self._stale or not stale):
-                continue
-            if not go or (parts and (not hurry or (time.perf_counter() - t0) * 1000.0 > budget)):
+        for k in todo if go else ():
+            if parts and (not hurry or (time.perf_counter() - t0) * 1000.0 > budget):
                 break
             # a tile, a part at a time (terrain, each mesh class, scenery) within the budget; a
             # stale one part for part (see _replace_parts)

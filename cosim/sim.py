@@ -207,7 +207,7 @@ class Simulation:
         # what setup made (the world's tables, the network, the route: hundreds of thousands
         # of objects) leaves the garbage collector's sight until teardown: a full collection
         # scanned it all in one frame (16 ms on Helsinki, against a 4 ms frame)
-        if not self._gc_frozen and not gc.get_freeze_count():
+        if not gc.get_freeze_count():
             gc.freeze()
             self._gc_frozen = True
         self._wall0 = time.perf_counter()
