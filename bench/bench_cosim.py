@@ -51,7 +51,7 @@ def _alone_main(conn, net, routes, seed):
     from netgen.sumo_net import sumo_binary
 
     libsumo.start([sumo_binary("sumo"), "-n", str(net), "-r", ",".join(map(str, routes)), "--step-length", "0.1",
-                   "--seed", str(seed), "--no-step-log", "--no-warnings", "--collision.action", "warn",
+                   "--seed", str(seed), "--no-step-log", "--no-warnings", "--collision.action", "warn", "--collision.mingap-factor", "0",
                    "--time-to-teleport", "120", "--ignore-route-errors"])
     try:
         while (n := conn.recv()) is not None:

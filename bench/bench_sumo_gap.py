@@ -53,7 +53,7 @@ def main(argv=None):
                         duration=n_steps * 0.1 + 60.0)
     libsumo.start([sumo_binary("sumo"), "-n", str(world / w["net_file"]), "-r", ",".join(map(str, d.route_files)),
                    "--step-length", "0.1", "--seed", str(a.seed), "--no-step-log", "--no-warnings",
-                   "--collision.action", "warn", "--time-to-teleport", "120", "--ignore-route-errors"])
+                   "--collision.action", "warn", "--collision.mingap-factor", "0", "--time-to-teleport", "120", "--ignore-route-errors"])
     try:
         for _ in range(int(a.warm / 0.1)):
             libsumo.simulationStep()

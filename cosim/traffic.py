@@ -314,7 +314,8 @@ class SumoTraffic(Component):
         if self.route_files:
             cmd += ["-r", ",".join(str(p) for p in self.route_files)]
         cmd += ["--step-length", f"{self.step_length:g}", "--seed", str(self.seed),
-                "--collision.action", "warn", "--time-to-teleport", f"{self.time_to_teleport:g}",
+                "--collision.action", "warn", "--collision.mingap-factor", "0",
+                "--time-to-teleport", f"{self.time_to_teleport:g}",
                 "--no-step-log", "--ignore-route-errors", "--pedestrian.model", "striping",
                 "--error-log", err_log, "--duration-log.disable"]
         if not self.warnings:
@@ -1400,9 +1401,10 @@ class SumoTraffic(Component):
         return mapping
 
     def _make_room(self, cx: float, cy: float, radius: float) -> int:
-        """Remove this SUMO's own vehicles within ``radius`` of (cx, cy): the vehicles carried
-        over from the previous SUMO stand there. (Persons may overlap; and removing walking
-        persons made libsumo crash in a later step.)"""
+        """Remove this SUMO's own vehicles within ``radius`` of (cx, cy), and those waiting to
+        be inserted on a road that passes there: the vehicles carried over from the previous
+        SUMO stand there. (Persons may overlap; and removing walking persons made libsumo
+        crash in a later step.)"""
         s = self._sim
         n = 0
         try:
@@ -1417,7 +1419,39 @@ class SumoTraffic(Component):
                 n += 1
             except self._exc:
                 pass
+        # and the vehicles waiting to be inserted there: the demand's trips in progress that
+        # found no room during the warm-up go in during the next steps, where the carried
+        # vehicles then stand (Kouvola motorway: 77-92 were waiting, and one inserted on a
+        # carried car's lane ran into it; SUMO counted a collision at every such swap)
+        try:
+            pending = s.simulation.getPendingVehicles()
+        except self._exc:
+            pending = ()
+        for vid in pending:
+            try:
+                first = s.vehicle.getRoute(vid)[0]
+                if self._edge_near(first, cx, cy, radius):
+                    s.vehicle.remove(vid)
+                    n += 1
+            except (self._exc, IndexError):
+                pass
         return n
+
+    def _edge_near(self, edge: str, x: float, y: float, radius: float) -> bool:
+        """Whether some lane of ``edge`` passes within ``radius`` of (x, y)."""
+        s = self._sim
+        for k in range(s.edge.getLaneNumber(edge)):
+            p = np.asarray(s.lane.getShape(f"{edge}_{k}"), dtype=float)
+            if len(p) == 1:
+                if math.hypot(p[0, 0] - x, p[0, 1] - y) <= radius:
+                    return True
+                continue
+            a, d = p[:-1], np.diff(p, axis=0)
+            t = np.clip(((x - a[:, 0]) * d[:, 0] + (y - a[:, 1]) * d[:, 1]) /
+                        np.maximum((d * d).sum(axis=1), 1e-12), 0.0, 1.0)
+            if np.min(np.hypot(a[:, 0] + t * d[:, 0] - x, a[:, 1] + t * d[:, 1] - y)) <= radius:
+                return True
+        return False
 
     def _capture(self, cx: float, cy: float, radius: float) -> list[_Kept]:
         s = self._sim

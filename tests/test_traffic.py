@@ -370,6 +370,20 @@ def test_sumo_car_brakes_behind_stationary_ego(traffic):
     assert leader and leader[0] == EGO_ID
     assert 0.5 < gap < 10.0
     assert t.stats.collisions == 0
+    # the standing ego rolls back a few centimetres (as the physics car does in a queue): the
+    # follower is then inside its minimum gap, which SUMO's default counts as a collision; the
+    # cars are still metres apart, and none is counted
+    yaw = sumo_angle_to_yaw(angle)
+    for back in (0.02, 0.05, 0.1):
+        t.set_ego_pose(cx - back * math.cos(yaw), cy - back * math.sin(yaw), yaw, 0.0)
+        t.step()
+    assert s.vehicle.getLeader("follower", 100.0)[1] < 0.0       # inside the minimum gap
+    assert t.stats.collisions == 0
+    # an ego that backs into it collides
+    back = s.vehicle.getLeader("follower", 100.0)[1] + s.vehicle.getMinGap("follower") + 0.5
+    t.set_ego_pose(cx - (0.1 + back) * math.cos(yaw), cy - (0.1 + back) * math.sin(yaw), yaw, 0.0)
+    t.step()
+    assert t.stats.collisions == 1
 
 
 def test_actors_near_radius_and_centres(dense, traffic):
@@ -636,10 +650,17 @@ def test_swap_network_keeps_actors_near_ego(helsinki_net, dense, traffic):
     bad = [(pid, v0, later.speed[later.index(pid)]) for pid, v0 in persons_to_check
            if pid in later.ids and abs(later.speed[later.index(pid)] - v0) >= 1.0]
     # the carried actors go on driving / walking afterwards
+    carried_hit = set()
     for _ in range(20):
         t.step()
+        carried_hit |= {(c.collider, c.victim) for c in s.simulation.getCollisions()
+                        if EGO_ID not in (c.collider, c.victim)
+                        and (c.collider in mapping.values()) != (c.victim in mapping.values())}
     alive = [n for n in mapping.values() if n in s.vehicle.getIDList() or n in s.person.getIDList()]
     assert len(alive) >= 0.8 * len(mapping)
+    # the new SUMO's own vehicles made room for the carried ones, those still waiting to be
+    # inserted too: none ran into a carried vehicle
+    assert not carried_hit
     assert not bad, f"carried persons report a wrong speed after the swap: {bad[:3]}"
     # a second swap carries the persons carried by the first, whose pace was set (SUMO gave
     # each a type of its own, "<type>@<person>", which its vehicle-type lookup may not know:
@@ -655,3 +676,31 @@ def test_swap_network_keeps_actors_near_ego(helsinki_net, dense, traffic):
     for _ in range(10):
         t.step()
         t.actors_near(ego["x"], ego["y"], 120.0)
+
+
+def test_swap_makes_room_among_vehicles_waiting_to_be_inserted(helsinki_net, dense, traffic):
+    """A new SUMO's trips in progress that found no room in its first second wait to be
+    inserted; those that would go in where the carried vehicles stand are removed with the
+    vehicles already there, the others wait on."""
+    t = traffic(dense.route_files, seed=1)
+    t.warm_up()
+    s = t.sumo
+    pending = list(s.simulation.getPendingVehicles())
+    assert len(pending) >= 10, len(pending)
+    first = {v: s.vehicle.getRoute(v)[0] for v in pending}
+    x, y = np.asarray(s.lane.getShape(first[pending[0]] + "_0"))[0]
+    radius = 80.0
+
+    def near(edge):
+        return any(np.min(np.hypot(*(np.asarray(s.lane.getShape(f"{edge}_{k}")) - (x, y)).T)) <= radius
+                   for k in range(s.edge.getLaneNumber(edge)))
+
+    waiting_near = [v for v in pending if near(first[v])]
+    assert waiting_near and len(waiting_near) < len(pending)
+    present_near = [v for v in s.vehicle.getIDList()
+                    if math.hypot(*np.subtract(s.vehicle.getPosition(v), (x, y))) < radius - 10.0]
+    removed = t._make_room(x, y, radius)
+    left = set(s.simulation.getPendingVehicles())
+    assert left == set(pending) - set(waiting_near)
+    assert removed >= len(waiting_near) + len(present_near)
+    assert not set(present_near) & set(s.vehicle.getIDList())
