@@ -116,6 +116,23 @@ def yaw_to_sumo_angle(yaw_rad):
     return float(a) if np.ndim(a) == 0 else a
 
 
+def _boxes_overlap(a, b) -> bool:
+    """Whether two rectangles (centre x, y, yaw in rad, length, width) overlap (separating
+    axis test)."""
+    corners = []
+    for cx, cy, yaw, length, width in (a, b):
+        c, s = math.cos(yaw), math.sin(yaw)
+        corners.append([(cx + dx * c - dy * s, cy + dx * s + dy * c)
+                        for dx in (-length / 2, length / 2) for dy in (-width / 2, width / 2)])
+    for _, _, yaw, _, _ in (a, b):
+        for ax in ((math.cos(yaw), math.sin(yaw)), (-math.sin(yaw), math.cos(yaw))):
+            pa = [px * ax[0] + py * ax[1] for px, py in corners[0]]
+            pb = [px * ax[0] + py * ax[1] for px, py in corners[1]]
+            if max(pa) < min(pb) or max(pb) < min(pa):
+                return False
+    return True
+
+
 def front_to_center(x, y, angle_deg, length):
     """SUMO front-bumper position -> body centre: centre = front - heading * length / 2."""
     a = np.radians(np.asarray(angle_deg, dtype=float))
@@ -511,6 +528,7 @@ class SumoTraffic(Component):
         if self._ego_added:
             if EGO_ID in departed:
                 self._ego_in_sim = True
+                self._clear_ego_footprint()
                 if self._ctx_anchor != EGO_ID:
                     self._subscribe_context(EGO_ID, self._ctx_radius)
             if EGO_ID in arrived:  # should not happen (remote controlled); re-add next pose
@@ -707,6 +725,8 @@ class SumoTraffic(Component):
             x += self._unstick_sign * EGO_UNSTICK_M * math.cos(yaw)
             y += self._unstick_sign * EGO_UNSTICK_M * math.sin(yaw)
         fx, fy = center_to_front(x, y, angle, self._ego_spec["length"])
+        if not self._ego_in_sim:
+            self._clear_ego_footprint()
         try:
             # matchThreshold: lanes are searched within this radius only (SUMO's default of
             # 100 m made this call cost 0.2-1.2 ms in a dense city; 15 m: 0.05 ms)
@@ -1435,6 +1455,36 @@ class SumoTraffic(Component):
                     n += 1
             except (self._exc, IndexError):
                 pass
+        return n
+
+    def _clear_ego_footprint(self) -> int:
+        """While the ego goes into SUMO (at the start, after a restart or a swap): remove the
+        vehicles that stand where the ego's body is placed, before its insertion and those
+        SUMO inserted in the same step (the demand's trips in progress go in at t = 0; in
+        Helsinki one stood where the car starts, and SUMO counted a collision). Returns how
+        many were removed."""
+        if self._ego_pose is None:
+            return 0
+        s = self._sim
+        x, y, yaw = self._ego_pose
+        L, W = self._ego_spec["length"], self._ego_spec["width"]
+        n = 0
+        for vid in s.vehicle.getIDList():
+            if vid == EGO_ID:
+                continue
+            try:
+                fx, fy = s.vehicle.getPosition(vid)
+                if math.hypot(fx - x, fy - y) > L + 30.0:      # (no car is 30 m long)
+                    continue
+                length, width = s.vehicle.getLength(vid), s.vehicle.getWidth(vid)
+                angle = s.vehicle.getAngle(vid)
+                cx, cy = front_to_center(fx, fy, angle, length)
+                if _boxes_overlap((x, y, yaw, L, W), (cx, cy, sumo_angle_to_yaw(angle), length, width)):
+                    s.vehicle.remove(vid)
+                    n += 1
+                    log.info("SUMO's %s stood where the ego went in at t=%.1f s: removed", vid, self.sim_time)
+            except self._exc:
+                continue
         return n
 
     def _edge_near(self, edge: str, x: float, y: float, radius: float) -> bool:

@@ -56,15 +56,7 @@ class TerrainGrid:
 
     def sample(self, x, y) -> np.ndarray:
         """Bilinear height at world x/y (arrays); clamped at the grid's border."""
-        x = np.asarray(x, dtype=float)
-        y = np.asarray(y, dtype=float)
-        ny, nx = self.z.shape
-        fx = np.clip((x - self.xmin) / self.spacing, 0.0, nx - 1.000001)
-        fy = np.clip((y - self.ymin) / self.spacing, 0.0, ny - 1.000001)
-        c = np.floor(fx).astype(np.int64)
-        r = np.floor(fy).astype(np.int64)
-        tx = fx - c
-        ty = fy - r
+        r, c, tx, ty = self._cell(x, y)
         z = self.z
         z00 = z[r, c]
         z01 = z[r, c + 1]
@@ -72,12 +64,9 @@ class TerrainGrid:
         z11 = z[r + 1, c + 1]
         return (z00 * (1 - tx) * (1 - ty) + z01 * tx * (1 - ty) + z10 * (1 - tx) * ty + z11 * tx * ty)
 
-    __call__ = sample
-
-    def sample_tri(self, x, y) -> np.ndarray:
-        """Height on the grid's triangulation as Bullet's heightfield builds it: each cell is
-        cut along its anti-diagonal, from (x+1, y) to (x, y+1). Objects placed with this sit
-        exactly on the physics terrain (bilinear differs by up to |z00+z11-z01-z10|/4)."""
+    def _cell(self, x, y):
+        """(row, col) of the grid cell under world x/y (arrays; clamped at the grid's border)
+        and the position in it, (tx, ty) in [0, 1)."""
         x = np.asarray(x, dtype=float)
         y = np.asarray(y, dtype=float)
         ny, nx = self.z.shape
@@ -85,8 +74,15 @@ class TerrainGrid:
         fy = np.clip((y - self.ymin) / self.spacing, 0.0, ny - 1.000001)
         c = np.floor(fx).astype(np.int64)
         r = np.floor(fy).astype(np.int64)
-        tx = fx - c
-        ty = fy - r
+        return r, c, fx - c, fy - r
+
+    __call__ = sample
+
+    def sample_tri(self, x, y) -> np.ndarray:
+        """Height on the grid's triangulation as Bullet's heightfield builds it: each cell is
+        cut along its anti-diagonal, from (x+1, y) to (x, y+1). Objects placed with this sit
+        exactly on the physics terrain (bilinear differs by up to |z00+z11-z01-z10|/4)."""
+        r, c, tx, ty = self._cell(x, y)
         z = self.z
         z00, z10, z01, z11 = z[r, c], z[r, c + 1], z[r + 1, c], z[r + 1, c + 1]
         lower = tx + ty <= 1.0

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cosim.demand import DENSITY_PRESETS, generate_demand, parse_density, plan_demand
-from cosim.traffic import (EGO_ID, SumoTraffic, center_to_front, front_to_center,
+from cosim.traffic import (EGO_ID, SumoTraffic, _boxes_overlap, center_to_front, front_to_center,
                            sumo_angle_to_yaw, yaw_to_sumo_angle)
 from netgen.errors import InputError, SimulationError
 
@@ -704,3 +704,40 @@ def test_swap_makes_room_among_vehicles_waiting_to_be_inserted(helsinki_net, den
     assert left == set(pending) - set(waiting_near)
     assert removed >= len(waiting_near) + len(present_near)
     assert not set(present_near) & set(s.vehicle.getIDList())
+
+
+def test_boxes_overlap():
+    car = (0.0, 0.0, 0.0, 4.5, 1.8)
+    assert _boxes_overlap(car, (4.0, 0.0, 0.0, 4.5, 1.8))          # bumpers overlap by 0.5 m
+    assert not _boxes_overlap(car, (5.0, 0.0, 0.0, 4.5, 1.8))      # 0.5 m apart
+    assert not _boxes_overlap(car, (0.0, 2.0, 0.0, 4.5, 1.8))      # side by side, 0.2 m apart
+    assert _boxes_overlap(car, (0.0, 3.0, math.pi / 2, 4.5, 1.8))  # crossing its side
+    assert not _boxes_overlap(car, (3.5, 3.5, math.pi / 4, 4.5, 1.8))
+
+
+@pytest.mark.parametrize("blocker_in", ["before", "same step"])
+def test_sumo_vehicles_where_the_ego_goes_in_are_removed(traffic, blocker_in):
+    """The demand's trips in progress go in at t = 0 wherever they are; one standing where the
+    ego starts (in SUMO before the ego is placed, or inserted in the ego's own step) is removed
+    when the ego goes into SUMO, not left to count as a collision; one ahead of it stays."""
+    t = traffic(seed=2)
+    s = t.sumo
+    lane, length = passenger_lanes(s, 120.0)[0]
+    edge, idx = lane.rsplit("_", 1)
+    s.route.add("r_block", [edge])
+    for vid, pos in (("blocker", 40.0), ("ahead", 70.0)):
+        s.vehicle.add(vid, "r_block", typeID="DEFAULT_VEHTYPE", depart="now", departPos=f"{pos}",
+                      departSpeed="0", departLane=idx)
+        s.vehicle.setSpeed(vid, 0.0)
+    if blocker_in == "before":
+        t.step()
+        assert {"blocker", "ahead"} <= set(s.vehicle.getIDList())
+    fx, fy, angle = lane_pose(s, lane, 41.0)          # the ego's front 1 m past the blocker's
+    cx, cy = front_to_center(fx, fy, angle, 4.5)
+    t.add_ego([edge])
+    t.set_ego_pose(cx, cy, sumo_angle_to_yaw(angle), 0.0)
+    for _ in range(3):
+        t.step()
+    ids = set(s.vehicle.getIDList())
+    assert "blocker" not in ids and {"ahead", EGO_ID} <= ids
+    assert t.stats.collisions == 0
