@@ -259,25 +259,25 @@ def test_persons_carried_onto_a_walk_ending_in_a_junction_are_dropped(tmp_path_f
     matched onto a crossing with a walk ending on a junction's edge (first met with seed 1:
     ('30471533', ':cluster_409705483_409705484_w0')); SUMO 1.28 segfaulted 2.3 s later, when
     that walk ended (the loop restarted it, losing the traffic). Such persons are dropped at
-    the swap and SUMO runs on. Seed 11 meets two of them at its swap (t = 203.8 s); the
-    autopilot's changes move the car and so the swap, and seed 1 no longer does. (Where the
-    run no longer meets that case, the test says so: it needs a new case, not a pass.)"""
+    the swap and SUMO runs on. Seed 25 meets one at its swap (t = 214.3 s; seeds 11 and 1
+    did before changes to the autopilot and the traffic moved the car and so the swap). (Where
+    the run no longer meets that case, the test says so: it needs a new case, not a pass.)"""
     out = tmp_path_factory.mktemp("sim") / "helsinki"
     build_world(WorldConfig(preset="helsinki", chunks=1, out=str(out), cache_dir=str(out.parent / "cache")))
-    cfg = SimConfig(world_dir=str(out), traffic="normal", seed=11, speed_mps=12.0, duration_s=300.0,
+    cfg = SimConfig(world_dir=str(out), traffic="normal", seed=25, speed_mps=12.0, duration_s=300.0,
                     parallel_sumo=True)
     sim = Simulation(cfg).setup()
     sim.physics.load_budget_ms = 1e9
     try:
-        while sim.t < 210.0:
+        while sim.t < 225.0:             # (the dropped person's walk would have ended by then)
             sim.step()
         swaps, dropped = sim.streamer.swaps, sim.traffic.stats.swap_dropped
         summary = sim.finish()
     finally:
         sim.teardown()
     assert summary.sumo_restarts == 0, summary.notes
-    assert swaps == 1, "the run no longer swaps windows before t = 210 s"
-    assert dropped >= 2, "the swap no longer meets stranded persons"
+    assert swaps == 1, "the run no longer swaps windows before t = 225 s"
+    assert dropped >= 1, "the swap no longer meets stranded persons"
 
 
 def test_sumo_worker_crash_is_survived(motorway_world):
