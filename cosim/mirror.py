@@ -25,6 +25,8 @@ import math
 import numpy as np
 import pybullet as pb
 
+from .traffic import _boxes_overlap
+
 PARK_Z = -500.0
 LONG_M = 7.0          # vehicles longer than this are chains of boxes
 SEGMENT_M = 4.0       # ... of at most this length
@@ -72,27 +74,6 @@ def _along_trail(trail: list, dists) -> list:
             k -= 1
             px, py = qx, qy
     return out
-
-
-def _overlap(a, b, margin: float = 0.1) -> bool:
-    """Do two oriented rectangles (x, y, yaw, length, width) overlap? Separating-axis test."""
-    ax, ay, ayaw, al, aw = a
-    bx, by, byaw, bl, bw = b
-    dx, dy = bx - ax, by - ay
-    if dx * dx + dy * dy > ((al + bl) * 0.5 + aw + bw) ** 2:
-        return False
-    axes = []
-    for yaw in (ayaw, byaw):
-        c, s = math.cos(yaw), math.sin(yaw)
-        axes.append((c, s))
-        axes.append((-s, c))
-    for ux, uy in axes:
-        def half(yaw, l, w):
-            c, s = math.cos(yaw), math.sin(yaw)
-            return 0.5 * l * abs(c * ux + s * uy) + 0.5 * w * abs(-s * ux + c * uy)
-        if abs(dx * ux + dy * uy) > half(ayaw, al, aw) + half(byaw, bl, bw) + margin:
-            return False
-    return True
 
 
 class ActorMirror:
@@ -171,7 +152,7 @@ class ActorMirror:
                     chain_at.setdefault(k, []).append(boxes[i] + (zl[i], cl[i], quat[n + i]))
             if ego is not None:
                 for k, bx in chain_at.items():
-                    if any(_overlap(ego, b[:5]) for b in bx):
+                    if any(_boxes_overlap(ego, b[:5], margin=0.1) for b in bx):
                         chain_at[k] = None          # held where it was
             z, cosp = z[:n], cosp[:n]
             # size keys (box sizes rounded so that bodies can be pooled), computed once per actor
@@ -203,7 +184,7 @@ class ActorMirror:
                 if k in chain_at:
                     held += self._place_chain(aid, cur, key, chain_at[k])
                     continue
-                if near[k] and _overlap(ego, (xs[k], ys[k], yaws[k], key[1], key[2])):
+                if near[k] and _boxes_overlap(ego, (xs[k], ys[k], yaws[k], key[1], key[2]), margin=0.1):
                     held += 1
                     continue
                 pos = (xs[k], ys[k], zs[k] + key[3] * 0.5 * cosp[k])

@@ -116,19 +116,23 @@ def yaw_to_sumo_angle(yaw_rad):
     return float(a) if np.ndim(a) == 0 else a
 
 
-def _boxes_overlap(a, b) -> bool:
-    """Whether two rectangles (centre x, y, yaw in rad, length, width) overlap (separating
-    axis test)."""
-    corners = []
-    for cx, cy, yaw, length, width in (a, b):
+def _boxes_overlap(a, b, margin: float = 0.0) -> bool:
+    """Do two oriented rectangles (x, y, yaw in rad, length, width) overlap, or come within
+    ``margin`` of each other? Separating-axis test."""
+    ax, ay, ayaw, al, aw = a
+    bx, by, byaw, bl, bw = b
+    dx, dy = bx - ax, by - ay
+    if dx * dx + dy * dy > ((al + bl) * 0.5 + aw + bw + margin) ** 2:
+        return False
+
+    def half(yaw, length, width, ux, uy):
         c, s = math.cos(yaw), math.sin(yaw)
-        corners.append([(cx + dx * c - dy * s, cy + dx * s + dy * c)
-                        for dx in (-length / 2, length / 2) for dy in (-width / 2, width / 2)])
-    for _, _, yaw, _, _ in (a, b):
-        for ax in ((math.cos(yaw), math.sin(yaw)), (-math.sin(yaw), math.cos(yaw))):
-            pa = [px * ax[0] + py * ax[1] for px, py in corners[0]]
-            pb = [px * ax[0] + py * ax[1] for px, py in corners[1]]
-            if max(pa) < min(pb) or max(pb) < min(pa):
+        return 0.5 * length * abs(c * ux + s * uy) + 0.5 * width * abs(-s * ux + c * uy)
+
+    for yaw in (ayaw, byaw):
+        c, s = math.cos(yaw), math.sin(yaw)
+        for ux, uy in ((c, s), (-s, c)):
+            if abs(dx * ux + dy * uy) > half(ayaw, al, aw, ux, uy) + half(byaw, bl, bw, ux, uy) + margin:
                 return False
     return True
 
@@ -288,6 +292,7 @@ class SumoTraffic(Component):
     # --- lifecycle ----------------------------------------------------------------------
     def _reset_run_state(self):
         self._ego_in_sim = False
+        self._ego_clear_due = False
         self._ego_added = False
         self._ego_pending_speed: float | None = None
         self._ego_off_network = False
@@ -706,6 +711,7 @@ class SumoTraffic(Component):
         except self._exc as e:
             raise SimulationError(f"cannot add the ego vehicle to SUMO: {e}") from None
         self._ego_added = True
+        self._ego_clear_due = True      # (set_ego_pose clears its place once, _after_step again)
 
     def set_ego_pose(self, x: float, y: float, yaw: float, speed: float = 0.0,
                      edge_hint: str | None = None, lane_hint: int | None = None) -> bool:
@@ -725,7 +731,8 @@ class SumoTraffic(Component):
             x += self._unstick_sign * EGO_UNSTICK_M * math.cos(yaw)
             y += self._unstick_sign * EGO_UNSTICK_M * math.sin(yaw)
         fx, fy = center_to_front(x, y, angle, self._ego_spec["length"])
-        if not self._ego_in_sim:
+        if self._ego_clear_due:
+            self._ego_clear_due = False
             self._clear_ego_footprint()
         try:
             # matchThreshold: lanes are searched within this radius only (SUMO's default of
@@ -1467,24 +1474,22 @@ class SumoTraffic(Component):
             return 0
         s = self._sim
         x, y, yaw = self._ego_pose
-        L, W = self._ego_spec["length"], self._ego_spec["width"]
+        ego = (x, y, yaw, self._ego_spec["length"], self._ego_spec["width"])
+        try:
+            snap = self.actors_near_getters(x, y, ego[3] + 30.0)      # (no car is 30 m long)
+        except self._exc:
+            return 0
         n = 0
-        for vid in s.vehicle.getIDList():
-            if vid == EGO_ID:
+        for k, (vid, kind) in enumerate(zip(snap.ids, snap.kind)):
+            if kind == "person" or not _boxes_overlap(ego, (snap.x[k], snap.y[k], snap.yaw[k],
+                                                            snap.length[k], snap.width[k])):
                 continue
             try:
-                fx, fy = s.vehicle.getPosition(vid)
-                if math.hypot(fx - x, fy - y) > L + 30.0:      # (no car is 30 m long)
-                    continue
-                length, width = s.vehicle.getLength(vid), s.vehicle.getWidth(vid)
-                angle = s.vehicle.getAngle(vid)
-                cx, cy = front_to_center(fx, fy, angle, length)
-                if _boxes_overlap((x, y, yaw, L, W), (cx, cy, sumo_angle_to_yaw(angle), length, width)):
-                    s.vehicle.remove(vid)
-                    n += 1
-                    log.info("SUMO's %s stood where the ego went in at t=%.1f s: removed", vid, self.sim_time)
+                s.vehicle.remove(vid)
+                n += 1
+                log.info("SUMO's %s stood where the ego went in at t=%.1f s: removed", vid, self.sim_time)
             except self._exc:
-                continue
+                pass
         return n
 
     def _edge_near(self, edge: str, x: float, y: float, radius: float) -> bool:
@@ -1492,11 +1497,7 @@ class SumoTraffic(Component):
         s = self._sim
         for k in range(s.edge.getLaneNumber(edge)):
             p = np.asarray(s.lane.getShape(f"{edge}_{k}"), dtype=float)
-            if len(p) == 1:
-                if math.hypot(p[0, 0] - x, p[0, 1] - y) <= radius:
-                    return True
-                continue
-            a, d = p[:-1], np.diff(p, axis=0)
+            a, d = p[:-1], np.diff(p, axis=0)           # (a lane's shape has 2 points or more)
             t = np.clip(((x - a[:, 0]) * d[:, 0] + (y - a[:, 1]) * d[:, 1]) /
                         np.maximum((d * d).sum(axis=1), 1e-12), 0.0, 1.0)
             if np.min(np.hypot(a[:, 0] + t * d[:, 0] - x, a[:, 1] + t * d[:, 1] - y)) <= radius:
