@@ -86,6 +86,7 @@ class ActorMirror:
         self.shapes: dict = {}      # key -> (collision, visual)
         self.created = 0
         self.held = 0
+        self.held_at: dict = {}     # actor id -> (x, y): where an actor held this frame stands
         self.max_error_m = 0.0
         self._keys: dict = {}       # actor id -> size key
         self._last: dict = {}       # body -> last position set (a body standing still is not moved)
@@ -123,6 +124,7 @@ class ActorMirror:
         n = len(snap)
         seen = set()
         held = 0
+        self.held_at = {}
         if n:
             x, y, yaw = snap.x, snap.y, snap.yaw
             kinds = snap.kind
@@ -186,6 +188,9 @@ class ActorMirror:
                     continue
                 if near[k] and _boxes_overlap(ego, (xs[k], ys[k], yaws[k], key[1], key[2]), margin=0.1):
                     held += 1
+                    last = self._last.get(cur[0])
+                    if last is not None:
+                        self.held_at[aid] = (last[0], last[1])
                     continue
                 pos = (xs[k], ys[k], zs[k] + key[3] * 0.5 * cosp[k])
                 if self._last.get(cur[0]) == pos:      # standing still: nothing to move
@@ -202,6 +207,24 @@ class ActorMirror:
             self._chain_last.pop(a, None)
         self.held += held
         return {"mirrored": len(self.active), "left": len(gone), "held": held}
+
+    def as_placed(self, snap):
+        """`snap` (the snapshot just mirrored) with each actor held outside the ego (see
+        :meth:`update`) where its body stands, not moving: what the car has in its way. (A
+        Helsinki pedestrian, walking on a guessed walking area that overlaps a car lane, went
+        through the standing car in SUMO; its body stood at the car's front bumper until it
+        came out behind, and the car, seeing SUMO's pedestrian beside it, drove off into the
+        body.)"""
+        if not self.held_at:
+            return snap
+        idx = [k for k, a in enumerate(snap.ids.tolist()) if a in self.held_at]
+        if not idx:
+            return snap
+        out = snap.subset(np.ones(len(snap), dtype=bool))      # (a copy of the arrays)
+        for k in idx:
+            out.x[k], out.y[k] = self.held_at[snap.ids[k]]
+            out.speed[k] = 0.0
+        return out
 
     def _chain_boxes(self, snap, long_) -> tuple:
         """For the long vehicles (indices `long_`): their boxes (x, y, yaw, length, width),

@@ -388,7 +388,8 @@ class Simulation:
             if self.manual is not None:
                 throttle, brake, steer = self.manual
             else:
-                throttle, brake, steer = self.driver.control(st, s_here, snap, cfg.step_length_s)
+                throttle, brake, steer = self.driver.control(st, s_here, self.mirror.as_placed(snap),
+                                                             cfg.step_length_s)
             self.last_control = (throttle, brake, steer)
         self.vehicle.apply_control(throttle, brake, steer)
         self.vehicle.step(self.substeps)

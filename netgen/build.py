@@ -306,6 +306,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         from .roads import _road_lanes as road_lanes, build_roads, junction_gaps
         from .scenery import plan_scenery
         from .terrain import TerrainGrid, sample_grid
+        import scipy.sparse.linalg  # noqa: F401  (the junction planes' solver, 12 ms to import)
 
         progress("terrain", 0.0, "sampling terrain")
         with T.stage("terrain_sample"):

@@ -257,7 +257,8 @@ def _top_surface_z(xy, parts, cell: float = 8.0):
     # its bounding box covers, each point looked up in its cell; then the point in the
     # triangle's bounding box (4 numbers a pair), before the triangle itself (10)
     fine = cell / 2.0
-    bmin, bmax = T[:, :, :2].min(axis=1), T[:, :, :2].max(axis=1)
+    bmin = np.minimum(np.minimum(T[:, 0, :2], T[:, 1, :2]), T[:, 2, :2])
+    bmax = np.maximum(np.maximum(T[:, 0, :2], T[:, 1, :2]), T[:, 2, :2])
     pi, ti = _cell_pairs(np.floor(bmin / fine).astype(np.int64), np.floor(bmax / fine).astype(np.int64),
                          _cell_keys(xy, fine))
     x, y = xy[pi, 0], xy[pi, 1]
@@ -279,13 +280,21 @@ _KEY_BIAS = 1 << 30
 
 
 def _cell_pairs(lo, hi, qkey):
-    """Pairs (q, b), in the order of q: query q's cell (key ``qkey[q]``, :func:`_keys`) is one of
-    the cells ``lo[b] .. hi[b]`` (integer cell ranges, both ends included) of box b."""
+    """Pairs (q, b), in no set order: query q's cell (key ``qkey[q]``, :func:`_keys`) is one of
+    the cells ``lo[b] .. hi[b]`` (integer cell ranges, both ends included) of box b. (The
+    smaller side, the queries or the boxes' cells, is the one sorted.)"""
     nx, ny = hi[:, 0] - lo[:, 0] + 1, hi[:, 1] - lo[:, 1] + 1
     nc = nx * ny
     b = np.repeat(np.arange(len(lo)), nc)
     k = np.arange(nc.sum()) - np.repeat(np.cumsum(nc) - nc, nc)
     ckey = _keys(np.column_stack([lo[b, 0] + k % nx[b], lo[b, 1] + k // nx[b]]))
+    if len(qkey) < len(ckey):       # each box cell looked up among the sorted queries
+        order = np.argsort(qkey)
+        sq = qkey[order]
+        first, last = np.searchsorted(sq, ckey, "left"), np.searchsorted(sq, ckey, "right")
+        cnt = last - first
+        at = np.repeat(first, cnt) + np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        return order[at], np.repeat(b, cnt)
     order = np.argsort(ckey, kind="stable")
     ckey, b = ckey[order], b[order]
     first, last = np.searchsorted(ckey, qkey, "left"), np.searchsorted(ckey, qkey, "right")

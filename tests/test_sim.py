@@ -32,6 +32,13 @@ def motorway_world(tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="module")
+def helsinki_world(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim") / "helsinki"
+    build_world(WorldConfig(preset="helsinki", chunks=1, out=str(out), cache_dir=str(out.parent / "cache")))
+    return out
+
+
 def _ego_gap(sim) -> float:
     """How far the ego in SUMO is from the physics car (inf when SUMO has no ego)."""
     eg = sim.traffic.ego_state()
@@ -254,7 +261,7 @@ def test_the_same_seed_repeats_the_run_across_a_window_swap(motorway_world):
     assert a.shape == b.shape and np.array_equal(a, b)
 
 
-def test_persons_carried_onto_a_walk_ending_in_a_junction_are_dropped(tmp_path_factory):
+def test_persons_carried_onto_a_walk_ending_in_a_junction_are_dropped(helsinki_world):
     """Helsinki, normal traffic (a repeatable run): at a window swap, carried pedestrians are
     matched onto a crossing with a walk ending on a junction's edge (first met with seed 1:
     ('30471533', ':cluster_409705483_409705484_w0')); SUMO 1.28 segfaulted 2.3 s later, when
@@ -262,9 +269,7 @@ def test_persons_carried_onto_a_walk_ending_in_a_junction_are_dropped(tmp_path_f
     the swap and SUMO runs on. Seed 25 meets one at its swap (t = 214.3 s; seeds 11 and 1
     did before changes to the autopilot and the traffic moved the car and so the swap). (Where
     the run no longer meets that case, the test says so: it needs a new case, not a pass.)"""
-    out = tmp_path_factory.mktemp("sim") / "helsinki"
-    build_world(WorldConfig(preset="helsinki", chunks=1, out=str(out), cache_dir=str(out.parent / "cache")))
-    cfg = SimConfig(world_dir=str(out), traffic="normal", seed=25, speed_mps=12.0, duration_s=300.0,
+    cfg = SimConfig(world_dir=str(helsinki_world), traffic="normal", seed=25, speed_mps=12.0, duration_s=300.0,
                     parallel_sumo=True)
     sim = Simulation(cfg).setup()
     sim.physics.load_budget_ms = 1e9
@@ -278,6 +283,35 @@ def test_persons_carried_onto_a_walk_ending_in_a_junction_are_dropped(tmp_path_f
     assert summary.sumo_restarts == 0, summary.notes
     assert swaps == 1, "the run no longer swaps windows before t = 225 s"
     assert dropped >= 1, "the swap no longer meets stranded persons"
+
+
+def test_car_waits_while_a_pedestrian_walks_through_it_in_sumo(helsinki_world):
+    """Helsinki, normal traffic, seed 1 (a repeatable run): the car stands in a junction where
+    a guessed walking area overlaps its lane, waiting for a pedestrian walking at it along the
+    lane; SUMO walks the pedestrian through the car (its pedestrians see no vehicle on a
+    walking area). The mirror holds the pedestrian's body at the car's front bumper meanwhile,
+    and the car waits for that body (not for SUMO's pedestrian, already beside it) until it
+    comes out behind: no contact. (The car drove off into the body at t = 31.4 s before.)"""
+    cfg = SimConfig(world_dir=str(helsinki_world), traffic="normal", seed=1, speed_mps=12.0, duration_s=300.0,
+                    parallel_sumo=False)
+    sim = Simulation(cfg).setup()
+    sim.physics.load_budget_ms = 1e9
+    held_persons, waited = set(), 0
+    try:
+        while sim.t < 36.0:
+            sim.step()
+            persons = {a for a in sim.mirror.held_at if a.startswith("ped")}
+            held_persons |= persons
+            if persons and sim.driver.reason in ("lead person", "pedestrian crossing") and \
+                    sim.vehicle.state().speed < 0.1:
+                waited += 1
+        summary = sim.finish()
+    finally:
+        sim.teardown()
+    assert held_persons, "no pedestrian's body was held at the car: the run no longer meets the case"
+    assert waited >= 5, (held_persons, waited)      # the car stood while the body was held
+    assert summary.ego_collisions == 0, summary.line()
+    assert summary.distance_m > 50, summary.line()   # and drove on afterwards
 
 
 def test_sumo_worker_crash_is_survived(motorway_world):
