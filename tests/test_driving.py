@@ -472,6 +472,28 @@ def _arc_path(radius: float, angle_deg: float):
     return path
 
 
+def test_projection_stays_on_its_pass_where_the_path_comes_back_near_it():
+    """A route that passes a place twice (Kouvola, seed 2: a junction crossed again 325 m
+    later): the car near the first pass projects onto it, even where the second pass has a
+    point nearer than any point of the first (sparse points beside the car). It jumped 325 m
+    ahead, and the car turned towards the later pass and ran 8 m off the road."""
+    from cosim.driving import LanePath
+
+    first = [(x, 0.0) for x in np.arange(0.0, 100.1, 5.0)]                 # points 5 m apart
+    loop = [(100.0 + 20 * math.sin(a), 20.0 - 20 * math.cos(a)) for a in np.linspace(0.1, math.pi, 30)]
+    back = [(x, 40.0) for x in np.arange(95.0, 60.0, -1.0)]
+    down = [(52.5, y) for y in np.arange(35.0, -30.0, -0.5)]                # passes (52.5, 0.5)
+    pts = np.array(first + loop + back + down)
+    path = object.__new__(LanePath)
+    path._set_geometry(pts, [("a_0", "a")] * len(pts), None, limits={"a_0": 50.0})
+    hint = 10                                                              # the point (50, 0)
+    k, s, lat = path.project(52.5, 0.1, hint)
+    assert k == 10 and abs(s - 52.5) < 1e-6 and abs(lat - 0.1) < 1e-6      # on the first pass
+    # and where the car has reached the second pass, it is found there
+    k2, s2, lat2 = path.project(52.4, -5.0, len(first) + len(loop) + len(back) + 70)
+    assert s2 > 150.0 and abs(abs(lat2) - 0.1) < 1e-6
+
+
 @pytest.mark.parametrize("radius,angle,speed,limit", [(50.0, 120.0, 12.0, 0.15), (100.0, 60.0, 25.0, 0.2)])
 def test_autopilot_steering_holds_a_curve_on_the_physics_car(radius, angle, speed, limit):
     """The autopilot's steering (slip-aware pure pursuit) on the raycast car in PyBullet, on
