@@ -91,6 +91,8 @@ class Lead:
     kind: str                  # "vehicle", "person", "static"
     source: str                # "lidar", "actors", "sumo"
     actor: str = ""
+    track_gap: float | None = None     # a vehicle crossing the path: the gap to its track (the
+    # gap above is to where the car stops, CROSS_LANE_MARGIN_M before it); None for others
 
 
 @dataclass
@@ -514,12 +516,16 @@ class Autopilot:
                 # go on (a Helsinki drive braked at 6.6 m/s2 for a gap of 0 m and stopped there)
                 if gap < v_ego * v_ego / (2.0 * HARD_DECEL):
                     continue
+                track_gap = max(0.0, gap)
                 # a vehicle crossing the path: stop before its road, not just before its lane
                 # (stopped 4 m before a car in the far lane of a two-lane road, the car's nose
                 # was in the near lane, and a truck in it hit the car)
                 gap -= CROSS_LANE_MARGIN_M
+            else:
+                track_gap = None
             if best is None or gap < best.gap:
-                best = Lead(max(0.0, gap), lead_v, "person" if person else "vehicle", "actors", str(actors.ids[i]))
+                best = Lead(max(0.0, gap), lead_v, "person" if person else "vehicle", "actors", str(actors.ids[i]),
+                            track_gap)
         return best
 
     def _lane_shape(self, lane: str):
@@ -914,17 +920,21 @@ class Autopilot:
         if lead is None or v < 1.0:
             return
         closing = v - lead.speed
-        ttc = lead.gap / closing if closing > 0.3 else float("inf")
+        if lead.track_gap is None:
+            gap = lead.gap
+            ttc = gap / closing if closing > 0.3 else float("inf")
+        else:       # a vehicle crossing the path: its track's distance (no TTC: it moves across)
+            gap, ttc = lead.track_gap, float("inf")
         st.min_ttc_s = min(st.min_ttc_s, ttc)
-        st.min_gap_moving_m = min(st.min_gap_moving_m, lead.gap)
+        st.min_gap_moving_m = min(st.min_gap_moving_m, gap)
         if lead.kind == "vehicle" and lead.speed > 2.0 and abs(closing) < 0.5 and lead.gap < 60:
             st.time_gaps.append(lead.gap / v)
-        if ttc < NEAR_MISS_TTC_S or lead.gap < NEAR_MISS_GAP_M:
+        if ttc < NEAR_MISS_TTC_S or gap < NEAR_MISS_GAP_M:
             if t >= self._near_miss_until:
                 st.near_misses += 1
                 log.info("near miss at t=%.1f s: %s %s, gap %.1f m, ttc %.2f s, %.1f m/s", t, lead.kind, lead.actor,
-                         lead.gap, ttc, v)
-                st.events.append((round(t, 2), "near miss", f"{lead.kind} {lead.actor} gap {lead.gap:.1f} m "
+                         gap, ttc, v)
+                st.events.append((round(t, 2), "near miss", f"{lead.kind} {lead.actor} gap {gap:.1f} m "
                                                             f"ttc {ttc:.2f} s v {v:.1f}"))
             self._near_miss_until = t + 3.0
 
