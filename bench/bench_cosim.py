@@ -44,15 +44,20 @@ from netgen.build import build_world  # noqa: E402
 from netgen.config import WorldConfig  # noqa: E402
 
 
+def sumo_alone_cmd(net, routes, seed) -> list:
+    """SUMO's command line for the yardstick, SUMO alone (also bench_sumo_gap.py's)."""
+    from netgen.sumo_net import sumo_binary
+
+    return [sumo_binary("sumo"), "-n", str(net), "-r", ",".join(map(str, routes)), "--step-length", "0.1",
+            "--seed", str(seed), "--no-step-log", "--no-warnings", "--collision.action", "warn",
+            "--collision.mingap-factor", "0", "--time-to-teleport", "120", "--ignore-route-errors"]
+
+
 def _alone_main(conn, net, routes, seed):
     """SUMO alone in a process of its own, stepping blocks of steps on request."""
     import libsumo
 
-    from netgen.sumo_net import sumo_binary
-
-    libsumo.start([sumo_binary("sumo"), "-n", str(net), "-r", ",".join(map(str, routes)), "--step-length", "0.1",
-                   "--seed", str(seed), "--no-step-log", "--no-warnings", "--collision.action", "warn", "--collision.mingap-factor", "0",
-                   "--time-to-teleport", "120", "--ignore-route-errors"])
+    libsumo.start(sumo_alone_cmd(net, routes, seed))
     try:
         while (n := conn.recv()) is not None:
             steps = np.empty(n)

@@ -26,10 +26,10 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 
+from bench_cosim import sumo_alone_cmd  # noqa: E402
 from cosim.demand import generate_demand  # noqa: E402
 from netgen.build import build_world  # noqa: E402
 from netgen.config import WorldConfig  # noqa: E402
-from netgen.sumo_net import sumo_binary  # noqa: E402
 
 GAPS_MS = (0.0, 0.3, 1.0, 2.5, 5.0, 10.0)
 BLOCK = 25
@@ -51,9 +51,7 @@ def main(argv=None):
     n_steps = int(a.warm / 0.1) + a.rounds * len(GAPS_MS) * BLOCK * 2
     d = generate_demand(world / w["net_file"], world / "traffic", density=a.traffic, seed=a.seed,
                         duration=n_steps * 0.1 + 60.0)
-    libsumo.start([sumo_binary("sumo"), "-n", str(world / w["net_file"]), "-r", ",".join(map(str, d.route_files)),
-                   "--step-length", "0.1", "--seed", str(a.seed), "--no-step-log", "--no-warnings",
-                   "--collision.action", "warn", "--collision.mingap-factor", "0", "--time-to-teleport", "120", "--ignore-route-errors"])
+    libsumo.start(sumo_alone_cmd(world / w["net_file"], d.route_files, a.seed))
     try:
         for _ in range(int(a.warm / 0.1)):
             libsumo.simulationStep()

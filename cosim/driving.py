@@ -548,6 +548,16 @@ class CrossingOnPath:
     shape: np.ndarray = field(repr=False, default=None)
 
 
+def _onto_segments(P, V, x, y):
+    """Points (x, y; arrays broadcast against the segments) projected onto segments from `P`
+    along `V` (m, 2): (t in [0, 1], the point less the segment's start dx, dy, the point
+    less its projection ex, ey, the segments' squared lengths)."""
+    L2 = np.maximum(V[:, 0] * V[:, 0] + V[:, 1] * V[:, 1], 1e-12)
+    dx, dy = x - P[:, 0], y - P[:, 1]
+    t = np.clip((dx * V[:, 0] + dy * V[:, 1]) / L2, 0.0, 1.0)
+    return t, dx, dy, dx - t * V[:, 0], dy - t * V[:, 1], L2
+
+
 class LanePath:
     """A drivable centreline along a SUMO route. ``xy`` (n, 2), ``s`` arc length, per point the
     SUMO lane and edge it belongs to; ``stops``, ``crossings`` and ``max_speed`` (module doc)."""
@@ -846,9 +856,7 @@ class LanePath:
             return (lo, float(self.s[lo]), math.hypot(x - self.xy[lo, 0], y - self.xy[lo, 1]))
         P = self.xy[lo:hi - 1]
         V = self.xy[lo + 1:hi] - P
-        L2 = V[:, 0] * V[:, 0] + V[:, 1] * V[:, 1]
-        t = np.clip(((x - P[:, 0]) * V[:, 0] + (y - P[:, 1]) * V[:, 1]) / np.maximum(L2, 1e-12), 0.0, 1.0)
-        ex, ey = x - (P[:, 0] + t * V[:, 0]), y - (P[:, 1] + t * V[:, 1])
+        t, dx, dy, ex, ey, L2 = _onto_segments(P, V, x, y)
         d2 = ex * ex + ey * ey                  # to each segment (not its first point: the
         # points of a pass can lie 2 m from the car beside a segment of it, where another
         # pass has a point 0.7 m away; a Kouvola route passing a junction twice jumped 325 m)
@@ -862,7 +870,7 @@ class LanePath:
         while j > 0 and d2[j - 1] < d2[j]:
             j -= 1
         a = lo + j
-        side = V[j, 0] * (y - P[j, 1]) - V[j, 1] * (x - P[j, 0])
+        side = V[j, 0] * dy[j] - V[j, 1] * dx[j]
         return (a, float(self.s[a] + t[j] * math.sqrt(float(L2[j]))), math.copysign(math.sqrt(float(d2[j])), side))
 
     def project_many(self, x: np.ndarray, y: np.ndarray, s0: float, s1: float) -> tuple[np.ndarray, np.ndarray]:
@@ -877,12 +885,7 @@ class LanePath:
             return np.full(len(x), np.nan), np.full(len(x), np.inf)
         P = self.xy[i0:i1 - 1]
         V = self.xy[i0 + 1:i1] - P
-        L2 = np.maximum((V ** 2).sum(1), 1e-12)
-        dx = x[:, None] - P[None, :, 0]
-        dy = y[:, None] - P[None, :, 1]
-        t = np.clip((dx * V[None, :, 0] + dy * V[None, :, 1]) / L2[None, :], 0.0, 1.0)
-        cx = dx - t * V[None, :, 0]
-        cy = dy - t * V[None, :, 1]
+        t, dx, dy, cx, cy, L2 = _onto_segments(P, V, x[:, None], y[:, None])
         d2 = cx ** 2 + cy ** 2
         j = np.argmin(d2, axis=1)
         r = np.arange(len(x))

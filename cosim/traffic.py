@@ -137,6 +137,13 @@ def _boxes_overlap(a, b, margin: float = 0.0) -> bool:
     return True
 
 
+def _polyline_distance(P, x: float, y: float) -> float:
+    """Distance from (x, y) to the polyline `P` (n >= 2 points)."""
+    a, d = P[:-1], np.diff(P, axis=0)
+    t = np.clip(((x - a[:, 0]) * d[:, 0] + (y - a[:, 1]) * d[:, 1]) / np.maximum((d * d).sum(axis=1), 1e-12), 0.0, 1.0)
+    return float(np.min(np.hypot(a[:, 0] + t * d[:, 0] - x, a[:, 1] + t * d[:, 1] - y)))
+
+
 def front_to_center(x, y, angle_deg, length):
     """SUMO front-bumper position -> body centre: centre = front - heading * length / 2."""
     a = np.radians(np.asarray(angle_deg, dtype=float))
@@ -974,10 +981,7 @@ class SumoTraffic(Component):
                 P = np.asarray(s.lane.getShape(ln), dtype=float)
                 if len(P) < 2:
                     continue
-                v = np.diff(P, axis=0)
-                L2 = np.maximum((v * v).sum(axis=1), 1e-18)
-                t = np.clip(((np.array([x, y]) - P[:-1]) * v).sum(axis=1) / L2, 0.0, 1.0)
-                d = float(np.min(np.hypot(*(P[:-1] + t[:, None] * v - (x, y)).T)))
+                d = _polyline_distance(P, x, y)
                 if best is None or d < best[0]:
                     best = (d, ln)
             if best is not None:
@@ -1495,14 +1499,8 @@ class SumoTraffic(Component):
     def _edge_near(self, edge: str, x: float, y: float, radius: float) -> bool:
         """Whether some lane of ``edge`` passes within ``radius`` of (x, y)."""
         s = self._sim
-        for k in range(s.edge.getLaneNumber(edge)):
-            p = np.asarray(s.lane.getShape(f"{edge}_{k}"), dtype=float)
-            a, d = p[:-1], np.diff(p, axis=0)           # (a lane's shape has 2 points or more)
-            t = np.clip(((x - a[:, 0]) * d[:, 0] + (y - a[:, 1]) * d[:, 1]) /
-                        np.maximum((d * d).sum(axis=1), 1e-12), 0.0, 1.0)
-            if np.min(np.hypot(a[:, 0] + t * d[:, 0] - x, a[:, 1] + t * d[:, 1] - y)) <= radius:
-                return True
-        return False
+        return any(_polyline_distance(np.asarray(s.lane.getShape(f"{edge}_{k}"), dtype=float), x, y) <= radius
+                   for k in range(s.edge.getLaneNumber(edge)))      # (a lane's shape has 2 points or more)
 
     def _capture(self, cx: float, cy: float, radius: float) -> list[_Kept]:
         s = self._sim
