@@ -363,14 +363,19 @@ class Simulation:
             # SUMO's state after the step sent in the previous frame (waits for it, if it is
             # not done yet); then SUMO's next step starts in its worker process and runs
             # while the driver (on this state: lagged_reads) and the physics below run
-            snap = self.traffic.actors_near(st.x, st.y, cfg.mirror_radius_m)
-            if self._swap_adopting is not None:
-                self._swap_note("adopt_wait", t0)
-                self._swap_adopted()
             pose = (st.x, st.y, st.yaw, max(0.0, st.speed))
-            if self._swap_next is None or not self._swap_start(pose):
-                self.traffic.set_ego_pose(*pose)
-                self.traffic.step()
+            snap = None
+            if self._swap_adopting is None and self._swap_next is None:
+                # (the same requests in the same order, the next step sent first)
+                snap = self.traffic.advance(st.x, st.y, cfg.mirror_radius_m, pose)
+            if snap is None:
+                snap = self.traffic.actors_near(st.x, st.y, cfg.mirror_radius_m)
+                if self._swap_adopting is not None:
+                    self._swap_note("adopt_wait", t0)
+                    self._swap_adopted()
+                if self._swap_next is None or not self._swap_start(pose):
+                    self.traffic.set_ego_pose(*pose)
+                    self.traffic.step()
         snap = snap.above_ground(self.world.tunnels)
         with self.traffic.lagged_reads() if pipelined else contextlib.nullcontext():
             self.t += cfg.step_length_s

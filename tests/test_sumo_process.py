@@ -95,6 +95,47 @@ def test_worker_gives_the_same_traffic_as_in_process(net, routes):
     assert got == want                            # same actors, same positions, same lanes
 
 
+def test_step_sent_ahead_of_reading_the_last_gives_the_same_states(net, routes):
+    """``advance`` (the loop's frame: the actors of the step in flight, then the next step with
+    the ego's pose) sends the next step before it reads the last one's answer, so the worker
+    goes straight on; it sees the same requests in the same order as ``actors_near``,
+    ``set_ego_pose``, ``step``, so the actors are the same, frame by frame."""
+    a, b = TrafficProcess(net, routes, seed=4), TrafficProcess(net, routes, seed=4)
+    a.setup()
+    b.setup()
+    try:
+        lane = _start_lane(a.sumo)
+        for t in (a, b):
+            for _ in range(200):
+                t.step()
+            t.add_ego([lane.rsplit("_", 1)[0]])
+        want, got, ahead = [], [], 0
+        for k in range(80):
+            x, y, yaw, v = _ego_pose(a, lane, k)
+            snap = a.actors_near(x, y, 120.0)
+            a.set_ego_pose(x, y, yaw, v)
+            a.step()
+            want.append(sorted(zip(snap.ids, np.round(snap.x, 6), np.round(snap.y, 6), snap.lane)))
+            snap = b.advance(x, y, 120.0, (x, y, yaw, v))
+            if snap is None:                 # (no step sent yet with the actors asked for)
+                snap = b.actors_near(x, y, 120.0)
+                b.set_ego_pose(x, y, yaw, v)
+                b.step()
+            else:
+                ahead += 1
+                assert list(b._inflight) == ["step"], "the next step was not left in flight"
+            got.append(sorted(zip(snap.ids, np.round(snap.x, 6), np.round(snap.y, 6), snap.lane)))
+        a.sync()
+        b.sync()
+        assert a.sim_time == pytest.approx(b.sim_time)
+    finally:
+        a.teardown()
+        b.teardown()
+    assert ahead >= 75
+    assert sum(map(len, want)) > 200              # real traffic around the ego
+    assert got == want
+
+
 def test_two_workers_at_once_and_reads_never_stale(net, routes):
     a, b = TrafficProcess(net, routes, seed=1), TrafficProcess(net, seed=2)
     a.setup()
