@@ -231,8 +231,12 @@ def cmd_run(a):
     try:
         sim.setup()
         info = sim.snap_info
-        print(f"start snapped {info.get('start_snap_m')} m onto lane {info.get('start_lane')}"
-              + (f"; route {info['route_length_m']:.0f} m, ETA {info['eta_s']:.0f} s" if 'route_length_m' in info else ""))
+        start = (f"start snapped {info.get('start_snap_m')} m onto lane {info.get('start_lane')}"
+                 + (f"; route {info['route_length_m']:.0f} m, ETA {info['eta_s']:.0f} s" if 'route_length_m' in info else ""))
+        if not a.json:
+            print(start)
+        elif not a.quiet:           # (with --json, standard output holds the summary alone)
+            print(start, file=sys.stderr)
         summary = sim.run(on_step=on_step)
     finally:
         sim.teardown()

@@ -146,8 +146,7 @@ def test_cli_run_headless_prints_summary(motorway_world, tmp_path):
                         "--traffic", "none", "--json", "-q"], capture_output=True, text=True, timeout=600,
                        cwd=tmp_path)
     assert r.returncode == 0, r.stderr
-    out = r.stdout[r.stdout.index("{"):]
-    s = json.loads(out)
+    s = json.loads(r.stdout)               # standard output holds the JSON summary alone
     assert s["sim_time_s"] == pytest.approx(5.0) and s["steps"] == 50 and s["real_time_factor"] > 0
 
 
