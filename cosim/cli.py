@@ -122,7 +122,8 @@ def print_build_report(w: dict, stream=sys.stdout):
     print(f"network    {c['road_edges']} road edges ({c['road_length_km']} km), {c['junctions']} junctions, "
           f"{c['traffic_lights']} traffic lights, {c['crossings']} crossings, {c['footpath_edges']} footpaths", file=stream)
     print(f"buildings  {c['buildings']} ({c['buildings_height_from_tags']} heights from tags, "
-          f"{c.get('buildings_height_from_levels', 0)} from levels)", file=stream)
+          f"{c.get('buildings_height_from_levels', 0)} from levels; {c.get('building_passages', 0)} "
+          "over a road: passages)", file=stream)
     print(f"scenery    {c['trees']} trees, {c['street_lamps']} street lamps, {c['traffic_signal_poles']} signal poles, "
           f"{c['stop_signs']} stop / {c['give_way_signs']} give-way signs, {c['benches']} benches", file=stream)
     tr = w["terrain"]

@@ -303,7 +303,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
     try:
         # -- meanwhile (netconvert has the other core): all that needs no network ---------
         from .buildings import plan_buildings           # (imported once netconvert runs)
-        from .roads import _road_lanes as road_lanes, build_roads, junction_gaps
+        from .roads import _road_lanes as road_lanes, build_roads, carriageway_parts, junction_gaps
         from .scenery import plan_scenery
         from .terrain import TerrainGrid, sample_grid
         import scipy.sparse.linalg  # noqa: F401  (the junction planes' solver, 12 ms to import)
@@ -336,8 +336,6 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
                     break
                 buildings.prepare(k, tmp)
         streams = _Streams(_parallel(), grid)
-        if streams.parallel:
-            buildings.share(streams.ctx)
         # -- the network, read while netconvert writes it --------------------------------
         progress("roads", 0.0, "meshing roads")
         gc_frozen = _gc_freeze()        # (again before the forks)
@@ -351,6 +349,10 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         with T.stage("roads"):      # the lanes by edge, used by both streams: made once, before the fork
             road_lanes(net)
             junction_gaps(net)
+        with T.stage("buildings_passages"):     # no building stands on a road (buildings.py)
+            buildings.cut_passages(carriageway_parts(net), natural.sample)
+        if streams.parallel:
+            buildings.share(streams.ctx)
         if gc_frozen:
             gc.freeze()
         with streams:
@@ -403,7 +405,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
     progress("write", 1.0, "chunks written")
     # -- counts and report ---------------------------------------------------------------
     fc = feats.counts()
-    nb, n_tag, n_lev = buildings.counts()
+    nb, n_tag, n_lev, n_pass = buildings.counts()
     scen_counts = lout["kinds"]
     zs = grid.z
     world = {
@@ -425,7 +427,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
                     "road_levelling": lev},
         "chunks": entries,
         "counts": {**counts, "buildings": nb, "buildings_height_from_tags": n_tag,
-                   "buildings_height_from_levels": n_lev,
+                   "buildings_height_from_levels": n_lev, "building_passages": n_pass,
                    "trees": scen_counts.get("tree", 0), "street_lamps": scen_counts.get("street_lamp", 0),
                    "traffic_signal_poles": scen_counts.get("traffic_signal", 0),
                    "stop_signs": scen_counts.get("stop_sign", 0), "give_way_signs": scen_counts.get("give_way_sign", 0),
@@ -823,10 +825,25 @@ class _Buildings:
         self.shared = None          # shared memory for base and V (see share)
 
     def counts(self) -> tuple:
-        """(buildings, heights from tags, heights from levels) over all chunks."""
+        """(buildings, heights from tags, heights from levels, over a road) over all chunks."""
         recs = [r for r, bad in zip(self.bplan.records, self.bplan.failed) if not bad]
         return (len(recs), sum(1 for r in recs if r["height_source"] == "height"),
-                sum(1 for r in recs if r["height_source"] == "building:levels"))
+                sum(1 for r in recs if r["height_source"] == "building:levels"),
+                sum(1 for r in recs if "passage_from_m" in r))
+
+    def cut_passages(self, road_parts, ground=None) -> int:
+        """The buildings' parts over the roads lifted or left out (:func:`netgen.buildings.cut_passages`),
+        before the forks. The chunks prepared with a changed building are prepared again; the
+        others' prepared files still hold (each chunk numbers its own vertices)."""
+        from .buildings import chunk_layouts, cut_passages
+
+        cut = cut_passages(self.bplan, road_parts, ground)
+        if len(cut):
+            if self.layouts is not None:
+                self.layouts = chunk_layouts(self.bplan)
+            for k in set(self.bplan.chunk[cut].tolist()):
+                self.prepared.pop(k, None)
+        return len(cut)
 
     def prepare(self, k: int, tmp: Path | None = None) -> None:
         """Chunk k's files but the heights (once); with `tmp`, make their tile folders."""

@@ -40,6 +40,22 @@ Footprints are repaired with ``shapely.make_valid`` (polygonal parts kept); part
 buildings under 2 m2 are dropped and counted. Buildings mapped as a node get a placeholder
 box by type (8 x 8 m house, 3 x 6 m garage...), ``placeholder: true`` in their record.
 
+Over the roads
+--------------
+Where a footprint overlaps the carriageway of the SUMO network (its vehicle lanes, junctions
+and junction lanes: :func:`netgen.roads.carriageway_parts`), the building does not stand on
+the road: the part over it (grown by 0.2 m) becomes a passage, its underside at 4.5 m
+(``PASSAGE_CLEARANCE_M``, a road's usual clearance) above the highest ground under that part
+(on a slope, higher than above the base), or at the building's own ``min_height`` if higher,
+the rest standing on the ground as usual; where less than 1 m of the building would be left
+above that underside, the part over the road is left out. This is what OSM maps as ``tunnel=building_passage`` (a street through a block's
+gateway), and it also settles footprints that netconvert's lanes run into (a narrow old-town
+street whose guessed lane and sidewalk widths are wider than the space between its mapped
+buildings: in Lauf, a wall 0.37 m from a lane's centre stopped the car). The record keeps the
+whole footprint's area and base; ``passage_from_m`` gives the underside of the part over the
+road (null where that part was left out). :func:`cut_passages` does it, once the network is
+known (a world build: right after reading netconvert's output).
+
 Pipeline
 --------
 :func:`make_buildings` is :func:`plan_buildings` (footprints, heights, chunks, all solids
@@ -69,6 +85,10 @@ from .osm_features import OSMFeatures, polygonal
 
 LEVEL_HEIGHT_M = 3.0
 MIN_AREA_M2 = 2.0
+PASSAGE_CLEARANCE_M = 4.5     # underside of a building's part over a road (see "Over the roads")
+PASSAGE_MARGIN_M = 0.2        # the road grown by this, for the cut
+PASSAGE_MIN_SOLID_M = 1.0     # an upper part thinner than this is left out
+PASSAGE_MIN_AREA_M2 = 0.1     # overlaps smaller than this are left alone
 ROOF_SLAB_M = 0.5
 SAMPLE_STEP_M = 2.0
 MAX_SAMPLES = 4000
@@ -495,6 +515,88 @@ def chunk_index(px, py, chunk_bounds_list) -> np.ndarray:
     return out
 
 
+def cut_passages(plan: "BuildingPlan", road_parts, ground=None, clearance: float = PASSAGE_CLEARANCE_M,
+                 margin: float = PASSAGE_MARGIN_M) -> np.ndarray:
+    """Lift the parts of planned buildings that stand on the roads (module doc, "Over the
+    roads"): ``road_parts`` are polygons where vehicles drive (they may overlap). With
+    ``ground(x, y)`` (the natural terrain, vectorised) the clearance is over the highest ground
+    under the part over the road, not over the building's base (a passage on a slope). The
+    plan's solids, ranges and records are changed in place; returns the indices of the
+    buildings changed."""
+    parts = [g for g in road_parts if g is not None and not g.is_empty]
+    n = len(plan.ids)
+    if not parts or not n:
+        return np.zeros(0, np.int64)
+    low_ground = base_heights(plan, ground, sink_m=0.0) if ground is not None else None
+    parts = np.array(parts, dtype=object)
+    fps = np.empty(n, dtype=object)
+    fps[:] = plan.footprints
+    bi, pi = shapely.STRtree(parts).query(fps, predicate="intersects")
+    order = np.argsort(bi, kind="stable")
+    bi, pi = bi[order], pi[order]
+    cuts, geoms, z0s, z1s, owner = [], [], [], [], []
+    ub, ustart = np.unique(bi, return_index=True)
+    for b, lo, hi in zip(ub.tolist(), ustart.tolist(), np.r_[ustart[1:], len(bi)].tolist()):
+        rec = plan.records[b]
+        low, high = rec["min_height_m"], rec["height_m"]
+        if plan.failed[b] or low >= clearance:
+            continue                        # (nothing of it stands lower than a passage)
+        road = shapely.union_all(parts[pi[lo:hi]])
+        if margin > 0:
+            road = road.buffer(margin, quad_segs=2)
+        fp = fps[b]
+        over = polygonal(shapely.intersection(fp, road), PASSAGE_MIN_AREA_M2)
+        if over is None:
+            continue
+        rest = polygonal(shapely.difference(fp, road), PASSAGE_MIN_AREA_M2)
+        rise = 0.0
+        if low_ground is not None:          # the ground under the road part above the base's
+            q = shapely.get_coordinates(over)
+            rise = max(0.0, float(np.max(ground(q[:, 0], q[:, 1]))) - float(low_ground[b]))
+        top = max(low, clearance + rise)
+        upper = high - top >= PASSAGE_MIN_SOLID_M
+        pieces = ([(rest, low, high)] if rest is not None else []) + ([(over, top, high)] if upper else [])
+        if not pieces:
+            continue                        # (a low roof all over the road: nothing left)
+        cuts.append(b)
+        for g, a, z in pieces:
+            geoms.append(g)
+            z0s.append(a)
+            z1s.append(z)
+            owner.append(b)
+        rec["passage_from_m"] = round(float(top), 2) if upper else None
+    if not cuts:
+        return np.zeros(0, np.int64)
+    V2, F2, vs2, fs2 = extrude_footprints(geoms, z0s, z1s)
+    owner = np.array(owner, dtype=np.int64)
+    # each cut building's pieces are consecutive: its new range is its first piece's start to
+    # its last piece's end
+    first = np.r_[0, np.flatnonzero(owner[1:] != owner[:-1]) + 1]
+    last = np.r_[first[1:], len(owner)]
+    new = {b: (vs2[a], vs2[z], fs2[a], fs2[z]) for b, a, z in zip(owner[first].tolist(), first, last)}
+    Vb, Fb, vcount, fcount = [], [], np.diff(plan.vstart).copy(), np.diff(plan.fstart).copy()
+    for b, (va, vz, fa, fz) in new.items():
+        vcount[b], fcount[b] = vz - va, fz - fa
+    vstart = np.r_[0, np.cumsum(vcount)]
+    fstart = np.r_[0, np.cumsum(fcount)]
+    # the arrays again, in runs of untouched buildings and the cut ones between them
+    prev = 0
+    for b in sorted(new) + [n]:
+        if b > prev:                        # buildings prev..b-1 untouched: shifted as a block
+            Vb.append(plan.vertices[plan.vstart[prev]:plan.vstart[b]])
+            Fb.append(plan.faces[plan.fstart[prev]:plan.fstart[b]] + (vstart[prev] - plan.vstart[prev]))
+        if b < n:
+            va, vz, fa, fz = new[b]
+            Vb.append(V2[va:vz])
+            Fb.append(F2[fa:fz] + (vstart[b] - va))
+        prev = b + 1
+    plan.vertices = np.concatenate(Vb) if Vb else np.zeros((0, 3))
+    plan.faces = np.concatenate(Fb).astype(np.int64) if Fb else np.zeros((0, 3), np.int64)
+    plan.vstart, plan.fstart = vstart, fstart
+    plan.failed = fstart[1:] == fstart[:-1]
+    return np.array(sorted(new), dtype=np.int64)
+
+
 @dataclass
 class BuildingPlan:
     """Everything about the buildings that does not need the terrain (see :func:`plan_buildings`).
@@ -604,6 +706,7 @@ def chunk_layouts(plan: BuildingPlan) -> list[ChunkLayout]:
             vstart = np.r_[0, np.cumsum(vcnt)]
             fstart = np.r_[0, np.cumsum(fcnt)]
         stats["buildings"] = len(mine)
+        stats["passages"] = sum(1 for i in mine.tolist() if "passage_from_m" in plan.records[i])
         # global drop counts are reported with every chunk (they happen before assignment)
         stats.update(plan.stats)
         stats["outside_chunks"] = plan.outside
@@ -707,4 +810,5 @@ def _jsonable(d: dict) -> dict:
 __all__ = ["building_height", "building_min_height", "default_height", "parse_length",
            "parse_levels", "make_buildings", "plan_buildings", "place_buildings", "BuildingPlan",
            "write_chunk_buildings", "footprint_union", "footprint_parts",
-           "ChunkBuildings", "chunk_index", "extrude_footprints", "LEVEL_HEIGHT_M", "MIN_AREA_M2"]
+           "ChunkBuildings", "chunk_index", "extrude_footprints", "cut_passages", "LEVEL_HEIGHT_M",
+           "MIN_AREA_M2", "PASSAGE_CLEARANCE_M"]

@@ -592,7 +592,11 @@ def carriageway_parts(net) -> list:
     """Where vehicles drive: each vehicle lane's strip (its SUMO shape buffered by half its
     width, flat ends), each junction polygon (repaired where invalid) and the strips of the
     vehicle lanes inside junctions that leave their polygon (:func:`junction_gaps`). They
-    overlap; the union is not formed (scenery tests points against the parts)."""
+    overlap; the union is not formed (scenery tests points against the parts). Kept on the
+    network, as :func:`_road_lanes` (a build's buildings and scenery both use them)."""
+    cached = getattr(net, "_carriageway_cache", None)
+    if cached is not None:
+        return list(cached)
     _, lanes, _, _ = _road_lanes(net)
     drive = [l for l in lanes if l.drivable]
     out = list(_lane_strips(drive, mitre_limit=5.0))       # (GEOS's default mitre limit)
@@ -607,6 +611,10 @@ def carriageway_parts(net) -> list:
         out += list(jp)
     _, off = junction_gaps(net)             # (a junction's polygon can miss part of a turn)
     out += list(_lane_strips(off))
+    try:
+        net._carriageway_cache = tuple(out)
+    except AttributeError:      # a network object that takes no attributes: not kept
+        pass
     return out
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import osmium
 import pytest
+import shapely
 from pyproj import Geod, Transformer
 
 from netgen.build import build_world, load_world_json
@@ -239,6 +240,54 @@ def test_build_leaves_the_garbage_collector_as_it_was(helsinki):
         assert 0 < gc.get_freeze_count() <= frozen
     finally:
         gc.unfreeze()
+
+
+def test_no_building_stands_on_a_vehicle_lane(helsinki):
+    """Inside every vehicle lane (centre and 35 % of its width to each side, every 2 m), no
+    building's underside is less than 2 m above the ground: where an OSM footprint overlaps
+    netconvert's lanes, the building's part over them is a passage (buildings.py, "Over the
+    roads"). Helsinki has both kinds: passages into yards and footprints over guessed lanes."""
+    import trimesh
+
+    from cosim.world import World
+    from netgen.roadnet import read_net
+
+    out, w, _ = helsinki
+    assert w["counts"]["building_passages"] >= 20
+    tris = []
+    for c in w["chunks"]:
+        for f in c["files"]["tiles"]:
+            if f.endswith("building.obj"):
+                m = trimesh.load(out / f, force="mesh", process=False)
+                down = m.face_normals[:, 2] < -0.9            # undersides: floors and passages
+                tris.append(m.triangles[down])
+    T = np.concatenate(tris)
+    polys = shapely.polygons(T[:, :, :2])
+    tz = T[:, :, 2].mean(axis=1)
+    net = read_net(out / w["net_file"])
+    pts = []
+    for e in net.edges.values():
+        if e.function != "normal" or getattr(e, "tunnel", False):
+            continue
+        for ln in e.lanes:
+            if not ln.drivable or len(ln.shape) < 2:
+                continue
+            line = shapely.LineString(ln.shape[:, :2])
+            for off in (0.0, 0.35 * ln.width, -0.35 * ln.width):
+                g = line if off == 0.0 else line.offset_curve(off)
+                if g.is_empty or g.length < 1.0:
+                    continue
+                pts.append(shapely.get_coordinates(
+                    shapely.line_interpolate_point(g, np.arange(0.5, g.length, 2.0))))
+    P = np.concatenate(pts)
+    zr = World(out).ground_z(P[:, 0], P[:, 1])
+    ok = np.isfinite(zr)
+    P, zr = P[ok], zr[ok]
+    assert len(P) > 20000
+    pi, ti = shapely.STRtree(polys).query(shapely.points(P), predicate="within")
+    low = tz[ti] < zr[pi] + 2.0
+    assert not low.any(), f"{int(low.sum())} lane points under a building, e.g. at {P[pi[low][:3]].tolist()}"
+    assert len(pi) > 0          # (passages over lanes: their undersides are high enough)
 
 
 def test_rebuild_reuses_the_world(helsinki):
@@ -1253,6 +1302,14 @@ def test_prepared_building_files_are_the_plain_writers_files(tmp_path):
     prepared = _Buildings(chunks, bounds, plan, grid)
     for k in range(len(chunks)):
         prepared.prepare(k)
+    # roads through the centre chunk's buildings, known only now (as netconvert's): their
+    # chunks are prepared again, the others' prepared files must still hold
+    x0, y0, x1, y1 = bounds[chunks.index((0, 0))]
+    roads = [shapely.LineString([(x0, y), (x1, y)]).buffer(4.0, cap_style="flat")
+             for y in np.linspace(y0 + 100, y1 - 100, 9)]
+    assert prepared.cut_passages(roads, grid.sample) > 10
+    hit = {int(c) for c, r in zip(plan.chunk, plan.records) if "passage_from_m" in r}
+    assert hit and len(hit) < len(chunks) and all(k not in prepared.prepared for k in hit)
     (tmp_path / "a").mkdir()
     for i, j in chunks:
         (tmp_path / "a" / "chunks" / f"{i}_{j}").mkdir(parents=True)

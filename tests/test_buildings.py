@@ -422,3 +422,83 @@ def test_underground_buildings_are_not_built():
     built = all_records(res)
     assert not tagged & set(built) and len(built) > 1000
     assert res[0].stats["underground"] >= len(tagged) >= 1            # counted in the report
+
+
+# --- buildings over the roads -------------------------------------------------------------------
+def test_the_part_over_a_road_becomes_a_passage():
+    """A road strip laid across real footprints: each building's part over it (grown by the
+    margin) starts at the clearance, or goes where too little would be left above; the rest
+    still stands on the ground; every other building is untouched; solids stay closed."""
+    from netgen.buildings import (PASSAGE_CLEARANCE_M, PASSAGE_MARGIN_M, cut_passages, place_buildings,
+                                  plan_buildings)
+
+    path, frame, feats, chunks, _ = world("helsinki")
+    ref = plan_buildings(feats, chunks)
+    plan = plan_buildings(feats, chunks)
+    # a 6 m wide straight road through the middle of the largest footprint
+    big = int(np.argmax([g.area for g in plan.footprints]))
+    c = plan.footprints[big].centroid
+    road = shapely.LineString([(c.x - 400, c.y), (c.x + 400, c.y)]).buffer(3.0, cap_style="flat")
+    cut = cut_passages(plan, [road])
+    crossed = [i for i, g in enumerate(plan.footprints)
+               if shapely.intersection(g, road.buffer(PASSAGE_MARGIN_M)).area >= 0.1 and not ref.failed[i]]
+    assert big in cut and set(cut.tolist()) <= set(crossed) and len(cut) >= 3
+    grown = road.buffer(PASSAGE_MARGIN_M)
+    res = place_buildings(plan, lambda x, y: np.zeros(np.shape(x)))
+    recs = {r["id"]: (ch, r) for ch in res for r in ch.records}
+    lifted = dropped = 0
+    for i in cut.tolist():
+        ch, rec = recs[plan.ids[i]]
+        m = ch.scene.geometry[rec["id"]]
+        assert m.is_watertight and m.is_winding_consistent, rec["id"]
+        fp = plan.footprints[i]
+        over, rest = fp.intersection(grown), fp.difference(grown)
+        top = rec["passage_from_m"]
+        if top is None:                         # too low to keep a part above the road
+            assert rec["height_m"] - max(rec["min_height_m"], PASSAGE_CLEARANCE_M) < 1.0
+            assert m.volume == pytest.approx(rest.area * (rec["height_m"] - rec["min_height_m"]), rel=1e-3)
+            dropped += 1
+        else:
+            assert top == pytest.approx(max(rec["min_height_m"], PASSAGE_CLEARANCE_M))
+            assert m.volume == pytest.approx(rest.area * (rec["height_m"] - rec["min_height_m"])
+                                             + over.area * (rec["height_m"] - top), rel=1e-3)
+            lifted += 1
+        # nothing of it lower than the passage's underside stands on the road
+        tri = m.triangles_center
+        on_road = shapely.contains_xy(road.buffer(-0.01), tri[:, 0], tri[:, 1])
+        assert (tri[on_road, 2] >= rec["base_z"] + PASSAGE_CLEARANCE_M - 1e-6).all()
+        assert rec["footprint_area_m2"] == pytest.approx(fp.area, abs=0.01)   # the whole footprint
+    assert lifted >= 1
+    # the others: the same solids as without the road
+    for i in range(len(plan.ids)):
+        if i in set(cut.tolist()):
+            continue
+        a = ref.vertices[ref.vstart[i]:ref.vstart[i + 1]]
+        b = plan.vertices[plan.vstart[i]:plan.vstart[i + 1]]
+        assert np.array_equal(a, b)
+        fa = ref.faces[ref.fstart[i]:ref.fstart[i + 1]] - ref.vstart[i]
+        fb = plan.faces[plan.fstart[i]:plan.fstart[i + 1]] - plan.vstart[i]
+        assert np.array_equal(fa, fb)
+    assert "passage_from_m" not in ref.records[big]
+
+
+def test_passage_clearance_is_over_the_ground_under_it():
+    """On a slope the passage's underside is the clearance above the highest ground under the
+    part over the road, not above the building's base (its lowest ground)."""
+    from netgen.buildings import PASSAGE_CLEARANCE_M, cut_passages, plan_buildings
+
+    _, _, feats, chunks, _ = world("helsinki")
+    plan = plan_buildings(feats, chunks)
+    big = int(np.argmax([g.area for g in plan.footprints]))
+    fp = plan.footprints[big]
+    c = fp.centroid
+    road = shapely.LineString([(c.x, c.y - 400), (c.x, c.y + 400)]).buffer(2.0, cap_style="flat")
+    cut_passages(plan, [road], ground=tilted)           # 10 % up to the east
+    rec = plan.records[big]
+    over = fp.intersection(road.buffer(0.2))
+    rise = 0.1 * shapely.get_coordinates(over)[:, 0].max() - 0.1 * shapely.get_coordinates(fp)[:, 0].min()
+    assert rise > 1.0
+    if rec["height_m"] - (PASSAGE_CLEARANCE_M + rise) >= 1.0:
+        assert rec["passage_from_m"] == pytest.approx(PASSAGE_CLEARANCE_M + rise, abs=0.05)
+    else:
+        assert rec["passage_from_m"] is None
