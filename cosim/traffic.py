@@ -232,6 +232,7 @@ class TrafficStats:
     _seen_collisions: set = field(default_factory=set, repr=False)
 
 
+EGO_INSERT_DECEL = 4.5     # m/s², a vehicle behind the ego as it goes into SUMO must stop at this (_clear_ego_footprint)
 SWAP_WARM_S = 1.0          # a new SUMO runs this long before actors are carried into it
 SWAP_ROOM_MARGIN_M = 20.0    # the new SUMO's own actors this far beyond the kept ones make room
 
@@ -1472,8 +1473,11 @@ class SumoTraffic(Component):
         """While the ego goes into SUMO (at the start, after a restart or a swap): remove the
         vehicles that stand where the ego's body is placed, before its insertion and those
         SUMO inserted in the same step (the demand's trips in progress go in at t = 0; in
-        Helsinki one stood where the car starts, and SUMO counted a collision). Returns how
-        many were removed."""
+        Helsinki one stood where the car starts, and SUMO counted a collision), and those
+        coming up behind it in its lane too fast to stop before it at a normal deceleration
+        (EGO_INSERT_DECEL; SUMO inserts its own vehicles only where the follower can brake,
+        and the ego appears at once: in Lauf one ran into it 0.6 s after the start). Returns
+        how many were removed."""
         if self._ego_pose is None:
             return 0
         s = self._sim
@@ -1484,14 +1488,28 @@ class SumoTraffic(Component):
         except self._exc:
             return 0
         n = 0
+        c, sn = math.cos(yaw), math.sin(yaw)
         for k, (vid, kind) in enumerate(zip(snap.ids, snap.kind)):
-            if kind == "person" or not _boxes_overlap(ego, (snap.x[k], snap.y[k], snap.yaw[k],
-                                                            snap.length[k], snap.width[k])):
+            if kind == "person":
+                continue
+            why = None
+            if _boxes_overlap(ego, (snap.x[k], snap.y[k], snap.yaw[k], snap.length[k], snap.width[k])):
+                why = "stood where the ego went in"
+            else:
+                dx, dy = snap.x[k] - x, snap.y[k] - y
+                lon, lat = dx * c + dy * sn, -dx * sn + dy * c
+                gap = -lon - ego[3] / 2 - snap.length[k] / 2          # its front to the ego's rear
+                v = float(snap.speed[k])
+                closing = max(0.0, v - (self._ego_pending_speed or 0.0))    # (at a swap the ego moves)
+                if (0.0 <= gap < closing * closing / (2 * EGO_INSERT_DECEL) + 1.0
+                        and abs(lat) < (ego[4] + snap.width[k]) / 2 and math.cos(snap.yaw[k] - yaw) > 0.5):
+                    why = f"came up behind the ego at {v:.1f} m/s, {gap:.1f} m away, as it went in"
+            if why is None:
                 continue
             try:
                 s.vehicle.remove(vid)
                 n += 1
-                log.info("SUMO's %s stood where the ego went in at t=%.1f s: removed", vid, self.sim_time)
+                log.info("SUMO's %s %s at t=%.1f s: removed", vid, why, self.sim_time)
             except self._exc:
                 pass
         return n

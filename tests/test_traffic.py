@@ -715,6 +715,38 @@ def test_boxes_overlap():
     assert not _boxes_overlap(car, (3.5, 3.5, math.pi / 4, 4.5, 1.8))
 
 
+def test_a_vehicle_that_cannot_stop_behind_the_ego_going_in_is_removed(traffic):
+    """The ego appears in SUMO at once, standing; a vehicle coming up behind it in its lane too
+    fast to stop at a normal deceleration is removed as it goes in (SUMO would only insert a
+    vehicle of its own where the follower can brake; in Lauf one hit the car 0.6 s after the
+    start), one far enough behind stays and stops, and SUMO counts no collision."""
+    t = traffic(seed=2)
+    s = t.sumo
+    lane, length = passenger_lanes(s, 150.0)[0]
+    edge, idx = lane.rsplit("_", 1)
+    s.route.add("r_chase", [edge])
+    for vid, pos in (("chaser", 36.0), ("far", 0.0)):
+        s.vehicle.add(vid, "r_chase", typeID="DEFAULT_VEHTYPE", depart="now", departPos=f"{pos}",
+                      departSpeed="13", departLane=idx)
+        s.vehicle.setSpeedMode(vid, 0)               # (no braking for the car about to appear)
+        s.vehicle.setSpeed(vid, 13.0)
+    t.step()
+    assert {"chaser", "far"} <= set(s.vehicle.getIDList())
+    for vid in ("chaser", "far"):
+        s.vehicle.setSpeedMode(vid, 31)              # SUMO's own driving again
+        s.vehicle.setSpeed(vid, -1)
+    fx, fy, angle = lane_pose(s, lane, 60.0)          # the ego's rear 55.5 m in: the chaser 17 m behind at 13 m/s
+    cx, cy = front_to_center(fx, fy, angle, 4.5)
+    t.add_ego([edge])
+    t.set_ego_pose(cx, cy, sumo_angle_to_yaw(angle), 0.0)
+    for _ in range(60):
+        t.set_ego_pose(cx, cy, sumo_angle_to_yaw(angle), 0.0)
+        t.step()
+    ids = set(s.vehicle.getIDList())
+    assert "chaser" not in ids and {"far", EGO_ID} <= ids
+    assert t.stats.collisions == 0
+
+
 @pytest.mark.parametrize("blocker_in", ["before", "same step"])
 def test_sumo_vehicles_where_the_ego_goes_in_are_removed(traffic, blocker_in):
     """The demand's trips in progress go in at t = 0 wherever they are; one standing where the
