@@ -52,14 +52,23 @@ SPEEDS = {"kouvola-motorway": 25.0}
 MC_START, MC_GOAL = (43.738822, 7.424690), (43.738369, 7.424390)
 
 
+# places from ../shared/data: OSM extract, DEM, centre (lat, lon)
+SHARED_PLACES = {
+    "monaco": ("monaco-2022.osm.pbf", "N43E007.hgt", (43.7384, 7.4246)),
+    "lauf": ("lauf-2020.osm.pbf", "N49E011.hgt.zip", (49.5105, 11.2780)),        # an old town
+    "portland": ("portland-central-2015.osm.pbf", "portland-ned.tif", (45.5152, -122.6784)),
+}
+
+
 def world_for(name: str, workdir: Path, chunks: int) -> str | None:
     out = workdir / f"{name}-c{chunks}"
-    if name == "monaco":
-        osm, dem = SHARED / "osm" / "monaco-2022.osm.pbf", SHARED / "dem" / "N43E007.hgt"
+    if name in SHARED_PLACES:
+        o, d, centre = SHARED_PLACES[name]
+        osm, dem = SHARED / "osm" / o, SHARED / "dem" / d
         if not osm.exists() or not dem.exists():
-            print(f"monaco: skipped (needs {osm} and {dem})")
+            print(f"{name}: skipped (needs {osm} and {dem})")
             return None
-        cfg = WorldConfig(osm=str(osm), dem=[str(dem)], center=(43.7384, 7.4246), chunks=chunks, out=str(out),
+        cfg = WorldConfig(osm=str(osm), dem=[str(dem)], center=centre, chunks=chunks, out=str(out),
                           cache_dir=str(workdir / "cache"))
     else:
         cfg = WorldConfig(preset=name, chunks=chunks, out=str(out), cache_dir=str(workdir / "cache"))
@@ -259,7 +268,8 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--presets", default="helsinki,kouvola,kouvola-motorway,monaco")
+    ap.add_argument("--presets", default="helsinki,kouvola,kouvola-motorway,monaco",
+                    help="comma-separated: the embedded presets, and monaco, lauf, portland from ../shared/data")
     ap.add_argument("--duration", type=float, default=300.0, help="simulated seconds per preset")
     ap.add_argument("--traffic", default="normal")
     ap.add_argument("--seed", type=int, default=1)
