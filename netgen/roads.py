@@ -76,6 +76,7 @@ CONFORM_FADE_M = 15.0
 CONFORM_BELOW_M = 0.02
 SOFT_STEP_M = 0.15               # (a path drawn into a vehicle lane, this far off its height: left out there)
 CONFORM_MAX_M = 1.6             # (further apart than this somewhere: a bridge over a road, both kept)
+CONFORM_NODE_CLEAR_M = 15.0    # roads meeting at a node conform only this far beyond its junction
 CONFORM_MIN_OVERLAP_M = 1.0     # (of the cross-section inside the other road's lane: a sliver
                                 # where two roads' lanes graze near a junction does not count)
 #: how far a sidewalk may reach into a vehicle lane of another road before that piece of it is
@@ -902,10 +903,12 @@ def _onto_profiles(RP, rg, rz, pts, groups):
     return best_z, best_d
 
 
-def _higher_roads(edges, lanes, lane_edge):
+def _higher_roads(edges, lanes, lane_edge, junctions=None):
     """For :func:`_conform_to_higher_roads`: the vehicle lanes (numbers, their strips less
     :data:`SIDEWALK_INTRUSION_M` along each side), each edge's rank (OSM layer, a bridge being
-    1; netconvert's priority, vehicle lanes, width, then the id) and its nodes' numbers."""
+    1; netconvert's priority, vehicle lanes, width, then the id), its nodes' numbers, and
+    the nodes' positions and radii (their junction shape's farthest point; NaN and 0 without
+    ``junctions``)."""
     ne = len(edges)
     veh = np.array([k for k, ln in enumerate(lanes) if ln.drivable and not (ln.allowed and ln.allowed <= RAIL_CLASSES)],
                    dtype=np.int64)
@@ -919,7 +922,15 @@ def _higher_roads(edges, lanes, lane_edge):
     node_no: dict = {}
     fn = np.array([node_no.setdefault(e.from_node, len(node_no)) for e in edges], dtype=np.int64)
     tn = np.array([node_no.setdefault(e.to_node, len(node_no)) for e in edges], dtype=np.int64)
-    return veh, cores, rank, fn, tn, shapely.bounds(cores)
+    nxy = np.full((len(node_no), 2), np.nan)
+    nrad = np.zeros(len(node_no))
+    for nid, k in node_no.items():
+        j = (junctions or {}).get(nid)
+        if j is not None:
+            nxy[k] = (j.x, j.y)
+            if j.shape is not None and len(j.shape):
+                nrad[k] = float(np.max(np.hypot(j.shape[:, 0] - j.x, j.shape[:, 1] - j.y)))
+    return veh, cores, rank, fn, tn, shapely.bounds(cores), nxy, nrad
 
 
 def _box_pairs(bmin, bmax, boxes, cell: float = 25.0):
@@ -943,7 +954,7 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None):
     enough inside a vehicle lane of a higher-ranked road that their road does not meet at a
     node, with that lane (number among the vehicle lanes) and its edge: the highest-ranked
     one per point."""
-    veh, cores, rank, fn, tn, core_box = higher
+    veh, cores, rank, fn, tn, core_box, nxy, nrad = higher
     none = np.zeros(0, np.int64)
     sel = np.arange(len(P)) if only is None else np.flatnonzero(only)
     if not len(sel):
@@ -953,7 +964,15 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None):
     # (pairs by bounding box, then the cheap tests, then the geometry)
     qi, vi = _box_pairs(np.minimum(lo, hi), np.maximum(lo, hi), core_box)
     A, B = own_edge[sel[qi]], lane_edge[veh[vi]]
-    ok = (rank[B] > rank[A]) & (fn[A] != fn[B]) & (fn[A] != tn[B]) & (tn[A] != fn[B]) & (tn[A] != tn[B])
+    # roads that meet at a node: only away from it (its junction's reach and
+    # CONFORM_NODE_CLEAR_M more), where two one-way streets between the same two nodes run
+    # over each other (Lauf: 0.1-0.2 m apart in height at a bend, a step the car ran into)
+    ok = rank[B] > rank[A]
+    Q = P[sel[qi]]
+    for a in (fn[A], tn[A]):
+        shared = (a == fn[B]) | (a == tn[B])
+        d = np.hypot(Q[:, 0] - nxy[a, 0], Q[:, 1] - nxy[a, 1])
+        ok &= ~shared | (d > nrad[a] + CONFORM_NODE_CLEAR_M)        # (NaN: never far)
     qi, vi, B = qi[ok], vi[ok], B[ok]
     if not len(qi):
         return none, none, none
@@ -974,7 +993,8 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
                              lower_only: bool = False, only=None, fade: float = CONFORM_FADE_M,
                              cache: dict | None = None) -> int:
     """Heights ``z`` (in place) of the points `P` (lines `g`, arc length `s`) of roads that
-    overlap a higher-ranked road without meeting it at a node: where a point's cross-section
+    overlap a higher-ranked road without meeting it at a node (or far from the node where they
+    meet: :data:`CONFORM_NODE_CLEAR_M`): where a point's cross-section
     (``halfw`` either side) runs for :data:`CONFORM_MIN_OVERLAP_M` or more inside a vehicle
     lane of such a road (:func:`_higher_roads`), it takes that road's height, 2 cm under it
     (``onto(points, lane numbers, edge numbers)``); the move fades out along the line over
@@ -991,7 +1011,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     hillside one stood through the other: the tunnel's road 0.3 m proud of the boulevard's
     lane, which a car drove into; the two carriageways of Avenue Princesse Grace 1.4 m apart
     where they overlap. Returns how many points moved."""
-    veh, cores, rank, fn, tn, core_box = higher
+    veh = higher[0]
     if not len(P) or not len(veh):
         return 0
     if cache is not None and "pairs" in cache:
@@ -1062,7 +1082,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
               for r in (_open_ring(j.shape[:, :2]),) if r is not None}
     # roads that overlap a higher-ranked road without a junction take its height there: before
     # the planes are fitted (so that the nodes near the overlap follow) and again after
-    higher = _higher_roads(edges, lanes, lane_edge)
+    higher = _higher_roads(edges, lanes, lane_edge, net.junctions)
     group_of = np.full(len(edges), -1, dtype=np.int64)
     group_of[ref_e] = np.arange(len(ref_e))
 

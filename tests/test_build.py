@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import os
 import signal
 import subprocess
@@ -680,8 +681,9 @@ def _check_sidewalks_clear_other_roads(out: Path, w: dict) -> int:
 
 
 def _check_lower_roads_under_higher_ones(out: Path, w: dict) -> int:
-    """Where two roads overlap without meeting at a node (an untagged tunnel or bridge, a
-    street's two carriageways mapped closer than their widths), the lower-ranked one (OSM
+    """Where two roads overlap without meeting at a node, or 20 m and more beyond the junction
+    where they meet (an untagged tunnel or bridge, a street's two carriageways mapped closer
+    than their widths, two one-way streets between the same two nodes), the lower-ranked one (OSM
     layer, netconvert priority, vehicle lanes, width, id) lies under the other's vehicle lanes,
     more than 0.6 m in from their sides: each road followed its own patch of ground, and the
     service road in Monaco's old railway tunnel stood 0.3 m through Boulevard Princesse
@@ -697,6 +699,15 @@ def _check_lower_roads_under_higher_ones(out: Path, w: dict) -> int:
     rank = {e.id: r for r, e in enumerate(sorted(edges, key=lambda e: (
         e.layer, e.priority, len(veh[e.id]), round(sum(ln.width for ln in e.lanes), 2), e.id)))}
     ends = {e.id: {e.from_node, e.to_node} for e in edges}
+    reach = {}                  # a node: its position and its junction's reach + 20 m
+    for j in net.junctions.values():
+        r = float(np.max(np.hypot(j.shape[:, 0] - j.x, j.shape[:, 1] - j.y))) if len(j.shape) else 0.0
+        reach[j.id] = (j.x, j.y, r + 20.0)
+
+    def near_shared(a, b, x, y):
+        return any(n not in reach or math.hypot(x - reach[n][0], y - reach[n][1]) <= reach[n][2]
+                   for n in ends[a] & ends[b])
+
     cores = [(e, ln) for e, lns in veh.items() for ln in lns if ln.width > 1.3]
     tree = shapely.STRtree(shapely.buffer([shapely.LineString(ln.shape[:, :2]) for _, ln in cores],
                                           [ln.width / 2.0 - 0.6 for _, ln in cores], cap_style="flat"))
@@ -713,7 +724,8 @@ def _check_lower_roads_under_higher_ones(out: Path, w: dict) -> int:
         pi, ci = tree.query(shapely.points(P[:, :2]), predicate="within")
         for p, c in zip(pi, ci):
             other, ln = cores[c]
-            if other == edge or rank[other] < rank[edge] or ends[other] & ends[edge] or ln.id not in meshes:
+            if other == edge or rank[other] < rank[edge] or ln.id not in meshes \
+                    or near_shared(other, edge, P[p, 0], P[p, 1]):
                 continue
             hit, _, _ = meshes[ln.id].ray.intersects_location([[P[p, 0], P[p, 1], P[p, 2] + 50.0]], [[0, 0, -1]])
             if len(hit):
