@@ -715,6 +715,19 @@ def test_boxes_overlap():
     assert not _boxes_overlap(car, (3.5, 3.5, math.pi / 4, 4.5, 1.8))
 
 
+def _vehicles_on_a_lane(s, min_length, positions: dict, speed: float):
+    """Vehicles added on the first passenger lane at least `min_length` long, at the given
+    positions (m from its start) and departure speed; returns (lane, edge)."""
+    lane, _ = passenger_lanes(s, min_length)[0]
+    edge, idx = lane.rsplit("_", 1)
+    route = f"r_{'_'.join(positions)}"
+    s.route.add(route, [edge])
+    for vid, pos in positions.items():
+        s.vehicle.add(vid, route, typeID="DEFAULT_VEHTYPE", depart="now", departPos=f"{pos}",
+                      departSpeed=f"{speed:g}", departLane=idx)
+    return lane, edge
+
+
 def test_a_vehicle_that_cannot_stop_behind_the_ego_going_in_is_removed(traffic):
     """The ego appears in SUMO at once, standing; a vehicle coming up behind it in its lane too
     fast to stop at a normal deceleration is removed as it goes in (SUMO would only insert a
@@ -722,12 +735,8 @@ def test_a_vehicle_that_cannot_stop_behind_the_ego_going_in_is_removed(traffic):
     start), one far enough behind stays and stops, and SUMO counts no collision."""
     t = traffic(seed=2)
     s = t.sumo
-    lane, length = passenger_lanes(s, 150.0)[0]
-    edge, idx = lane.rsplit("_", 1)
-    s.route.add("r_chase", [edge])
-    for vid, pos in (("chaser", 36.0), ("far", 0.0)):
-        s.vehicle.add(vid, "r_chase", typeID="DEFAULT_VEHTYPE", depart="now", departPos=f"{pos}",
-                      departSpeed="13", departLane=idx)
+    lane, edge = _vehicles_on_a_lane(s, 150.0, {"chaser": 36.0, "far": 0.0}, 13.0)
+    for vid in ("chaser", "far"):
         s.vehicle.setSpeedMode(vid, 0)               # (no braking for the car about to appear)
         s.vehicle.setSpeed(vid, 13.0)
     t.step()
@@ -754,12 +763,8 @@ def test_sumo_vehicles_where_the_ego_goes_in_are_removed(traffic, blocker_in):
     when the ego goes into SUMO, not left to count as a collision; one ahead of it stays."""
     t = traffic(seed=2)
     s = t.sumo
-    lane, length = passenger_lanes(s, 120.0)[0]
-    edge, idx = lane.rsplit("_", 1)
-    s.route.add("r_block", [edge])
-    for vid, pos in (("blocker", 40.0), ("ahead", 70.0)):
-        s.vehicle.add(vid, "r_block", typeID="DEFAULT_VEHTYPE", depart="now", departPos=f"{pos}",
-                      departSpeed="0", departLane=idx)
+    lane, edge = _vehicles_on_a_lane(s, 120.0, {"blocker": 40.0, "ahead": 70.0}, 0.0)
+    for vid in ("blocker", "ahead"):
         s.vehicle.setSpeed(vid, 0.0)
     if blocker_in == "before":
         t.step()
