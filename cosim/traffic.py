@@ -54,6 +54,7 @@ import numpy as np
 from netgen.errors import SimulationError
 
 from .component import Component
+from .driving import _onto_segments
 
 log = logging.getLogger(__name__)
 
@@ -139,9 +140,8 @@ def _boxes_overlap(a, b, margin: float = 0.0) -> bool:
 
 def _polyline_distance(P, x: float, y: float) -> float:
     """Distance from (x, y) to the polyline `P` (n >= 2 points)."""
-    a, d = P[:-1], np.diff(P, axis=0)
-    t = np.clip(((x - a[:, 0]) * d[:, 0] + (y - a[:, 1]) * d[:, 1]) / np.maximum((d * d).sum(axis=1), 1e-12), 0.0, 1.0)
-    return float(np.min(np.hypot(a[:, 0] + t * d[:, 0] - x, a[:, 1] + t * d[:, 1] - y)))
+    _, _, _, ex, ey, _ = _onto_segments(P[:-1], np.diff(P, axis=0), x, y)
+    return float(np.sqrt(np.min(ex * ex + ey * ey)))
 
 
 def front_to_center(x, y, angle_deg, length):

@@ -903,12 +903,12 @@ def _onto_profiles(RP, rg, rz, pts, groups):
     return best_z, best_d
 
 
-def _higher_roads(edges, lanes, lane_edge, junctions=None):
+def _higher_roads(edges, lanes, lane_edge, junctions):
     """For :func:`_conform_to_higher_roads`: the vehicle lanes (numbers, their strips less
     :data:`SIDEWALK_INTRUSION_M` along each side), each edge's rank (OSM layer, a bridge being
     1; netconvert's priority, vehicle lanes, width, then the id), its nodes' numbers, and
-    the nodes' positions and radii (their junction shape's farthest point; NaN and 0 without
-    ``junctions``)."""
+    the nodes' positions and radii (their junction shape's farthest point; NaN and 0 for a
+    node without a junction)."""
     ne = len(edges)
     veh = np.array([k for k, ln in enumerate(lanes) if ln.drivable and not (ln.allowed and ln.allowed <= RAIL_CLASSES)],
                    dtype=np.int64)
@@ -925,7 +925,7 @@ def _higher_roads(edges, lanes, lane_edge, junctions=None):
     nxy = np.full((len(node_no), 2), np.nan)
     nrad = np.zeros(len(node_no))
     for nid, k in node_no.items():
-        j = (junctions or {}).get(nid)
+        j = junctions.get(nid)
         if j is not None:
             nxy[k] = (j.x, j.y)
             if j.shape is not None and len(j.shape):
