@@ -8,8 +8,9 @@ For each world folder given (built by ``cosim build``), from its tile meshes and
   heights shows as a steep face);
 * steps between roads: 5 m cells where faces of two different roads (not the two directions
   of one street) lie within 0.8 m of each other in plan and more than 0.15 / 0.3 / 0.6 m
-  apart in height; the same, apart, where one of the two is a junction's face (a junction
-  beside a lane, two junctions that overlap);
+  apart in height, up to 4 m (further apart: a bridge's deck over a road, counted apart as
+  deck cells); the same, apart, where one of the two is a junction's face (a junction beside
+  a lane, two junctions that overlap);
 * sidewalk over a lane: 5 m cells where a sidewalk's face lies within 1 m in plan of a vehicle
   lane's face and 0.3-4 m above it (a slab the car's body drives into);
 * terrain above the road: the area of asphalt (lanes, junctions; sampled at 8 random points
@@ -38,6 +39,7 @@ from cosim.world import World  # noqa: E402
 
 
 SAMPLES_PER_M2 = 8.0
+CLEARANCE_M = 4.0       # two surfaces further apart than this: a bridge's deck over a road
 
 
 def _groups(world: World, kind: str):
@@ -114,6 +116,8 @@ def measure(path: str) -> dict:
         pairs = cKDTree(C).query_pairs(0.8, output_type="ndarray")
         pairs = pairs[R[pairs[:, 0]] != R[pairs[:, 1]]]
         dz = np.abs(Z[pairs[:, 0]] - Z[pairs[:, 1]])
+        out["deck_cells"] = len({(int(x // 5), int(y // 5)) for x, y in C[pairs[dz > CLEARANCE_M, 0]]})
+        dz = np.where(dz > CLEARANCE_M, 0.0, dz)        # (a bridge's deck over a road: no step)
         junc = np.char.startswith(R.astype(str), "junction/")
         lanes = ~junc[pairs[:, 0]] & ~junc[pairs[:, 1]]
         out["step_cells"] = {th: len({(int(x // 5), int(y // 5)) for x, y in C[pairs[lanes & (dz > th), 0]]})
@@ -150,6 +154,7 @@ def main(argv=None):
                   ", ".join(f"> {th} m: {n}" for th, n in r["step_cells"].items()))
             print("   5 m cells with a step at a junction (junction beside a lane or another junction): " +
                   ", ".join(f"> {th} m: {n}" for th, n in r["junction_step_cells"].items()))
+            print(f"   5 m cells with a deck over a road (surfaces > {CLEARANCE_M:g} m apart): {r['deck_cells']}")
         if "sidewalk_over_lane_cells" in r:
             print(f"   5 m cells with a sidewalk 0.3-4 m above a vehicle lane: {r['sidewalk_over_lane_cells']}")
         if "terrain_above" in r:

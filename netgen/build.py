@@ -35,7 +35,7 @@ has finished, and what is left runs on both cores. Stages (timed; the report and
 
 Files inside the temporary folder are not fsynced one by one (see :mod:`netgen.meshio`);
 ``world.json`` is. Each chunk has ``terrain.npy``, one OBJ per tile and class
-(``tiles/<a>_<b>/<class>.obj``: asphalt, sidewalk, marking, rail, building; a ``g`` group
+(``tiles/<a>_<b>/<class>.obj``: asphalt, sidewalk, marking, rail, deck, building; a ``g`` group
 per piece), ``roads.json``, ``buildings.glb`` and ``buildings.json``, ``scenery.json``,
 ``areas.glb`` and ``areas.obj`` (the buildings are in the tiles and the GLB; there is no
 merged buildings.obj).
@@ -360,8 +360,8 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
                                                          buildings, streams))
             with T.stage("roads"):  # the levelling support: levelled here or in cosim-layers
                 roads = build_roads(net, natural.sample, q["road_step_m"],
-                                    on_support=lambda pts, hw, car, tris: streams.level(pts, hw, car, tris, T,
-                                                                                   buildings.lift))
+                                    on_support=lambda pts, hw, car, tris, hold: streams.level(
+                                        pts, hw, car, tris, hold, T, buildings.lift))
             T.t["roads"] = round(T.t["roads"] - T.t.get("terrain_level", 0.0), 3)
             with T.stage("road_tiles_plan"):
                 road_tiles = _RoadTiles(chunks, bounds, roads, TILE_M)
@@ -672,21 +672,21 @@ class _Streams:
         return out
 
     # -- sharing -----------------------------------------------------------------------------
-    def level(self, pts, hw, car, tris, T: Timer, then=None) -> None:
+    def level(self, pts, hw, car, tris, hold, T: Timer, then=None) -> None:
         """The roads' levelling support is known. If cosim-layers is already waiting for it
         (it claimed the levelling, :meth:`level_if_free`), send it there and go on meshing;
         else level here, now (as without children), so that cosim-layers, busy with the
         scenery, finds the terrain ready. `then` runs before the others are told."""
         if self.parallel and self.next_index("level"):
-            self._sup_w.send((pts, hw, car, tris))
+            self._sup_w.send((pts, hw, car, tris, hold))
             return
-        self._level(pts, hw, car, tris, T, then)
+        self._level(pts, hw, car, tris, hold, T, then)
 
-    def _level(self, pts, hw, car, tris, T: Timer, then) -> None:
+    def _level(self, pts, hw, car, tris, hold, T: Timer, then) -> None:
         from .terrain import level_under_roads
 
         with T.stage("terrain_level"):
-            self.lev = level_under_roads(self.grid, pts, hw, clear=car, tris=tris)
+            self.lev = level_under_roads(self.grid, pts, hw, clear=car, tris=tris, hold=hold)
         if self.parallel:       # hand the heights to the others (shared memory, allocated before the forks)
             np.frombuffer(self._z, dtype=np.float64)[:] = self.grid.z.ravel()
             if then is not None:

@@ -11,7 +11,8 @@ meshes in its ``meshes/``; every mesh URI is ``model://MODEL/meshes/FILE``)::
                              with its model, element, world pose and source (OSM id / file)
     README.md                how to launch it (GZ_SIM_RESOURCE_PATH / GAZEBO_MODEL_PATH=models)
     models/terrain_I_J/      terrain of chunk (I, J): one triangle mesh through every grid node
-    models/roads_I_J/        road surfaces: asphalt, sidewalk, rail (collide), marking (visual),
+    models/roads_I_J/        road surfaces: asphalt, sidewalk, rail (collide), marking and deck
+                             (bridges' undersides; visual),
                              one element per 250 m tile and layer (``asphalt_A_B``)
     models/areas_I_J/        grass / water areas (visual only)
     models/buildings_I_J/    one element per building, named by its OSM id (``way_123``)
@@ -69,7 +70,7 @@ CAR_MODEL = "cosim_car"
 CAR_DROP_M = 0.05          # the car is spawned this far above the road surface
 
 COLOURS = LAYER_COLOURS
-ROAD_LAYERS = ("asphalt", "sidewalk", "rail", "marking")   # tile layers exported as road models
+ROAD_LAYERS = ("asphalt", "sidewalk", "rail", "marking", "deck")   # tile layers exported as road models
 COLLIDE = {"asphalt", "sidewalk", "rail", "building", "terrain"}
 
 
@@ -1025,7 +1026,8 @@ def _export_chunk(world, ij, w: Writer, prefabs: dict) -> dict:
             placed.append(Placed("road_tile", name, ab, tc + zero, ";".join(srcs), ij))
     if elems:
         w.static_model(name, elems, f"road surfaces of chunk {i},{j}: asphalt, sidewalk and rail (collide), "
-                                    "markings (visual only), one element per 250 m tile and layer")
+                                    "markings and bridges' undersides (visual only), one element per "
+                                    "250 m tile and layer")
         models.append(name)
 
     # -- grass / water areas (visual only) ----------------------------------------------
@@ -1288,8 +1290,8 @@ gazebo --verbose world.sdf
 - Per chunk I_J (a {m['world']['chunk_size_m']:.0f} m square), static models, all at the world origin, each
   with one link whose visuals and collisions sit at their objects' world poses:
   - `terrain_I_J`: the terrain, a triangle mesh through every node of the chunk's grid;
-  - `roads_I_J`: asphalt, sidewalk and rail surfaces (with collision) and road markings
-    (visual only), one element per 250 m tile and layer (`asphalt_A_B`, ...);
+  - `roads_I_J`: asphalt, sidewalk and rail surfaces (with collision), road markings and
+    bridges' undersides (visual only), one element per 250 m tile and layer (`asphalt_A_B`, ...);
   - `areas_I_J`: grass and water areas (visual only);
   - `buildings_I_J`: one element per building, named by its OSM id (`way_123`), at
     (centroid x, centroid y, base z) of the world's `buildings.json`;

@@ -87,6 +87,7 @@ class Edge:
     tunnel: bool = False           # OSM tunnel=* (yes, culvert, ...): under the ground, not on it
     priority: int = 0              # netconvert's edge priority (from the road type)
     layer: int = 0                 # OSM layer=* (a bridge without one: 1)
+    bridge: bool = False           # OSM bridge=* (not "no"): a deck, not on the ground
 
 
     @property
@@ -274,6 +275,7 @@ def _read(f, internal: bool, internal_junctions: bool | None = None) -> RoadNet:
                 elif key == "bridge":
                     bridge = prm.get("value", "no") != "no"
             e.layer = layer if layer is not None else (1 if bridge else 0)
+            e.bridge = bool(bridge)
             edges[e.id] = e
         elif tag == "junction":
             get = el.get

@@ -10,7 +10,10 @@ they project onto it, so the two directions meet without a step. Before that, th
 edges at each node are put on one plane of at most 7 % grade, the planes' heights solved for
 all nodes at once, each edge taking up its ends' moves linearly (:func:`_junction_planes`).
 Tunnels (OSM ``tunnel=*``, an edge parameter) are not meshed, nor the junctions where only
-tunnels meet (:func:`underground_junctions`). Junctions and walking areas
+tunnels meet (:func:`underground_junctions`). Bridges (``bridge=*``) are decks, straight
+between where they meet the ground (:func:`_bridge_decks`), risen over the roads under them
+where they can be (:func:`_raise_decks`); their points above the ground hold no terrain up
+(:attr:`RoadGeometry.support_hold`). Junctions and walking areas
 are triangulated by GEOS's constrained Delaunay triangulation (earcut where a SUMO polygon is
 invalid) with a boundary point every ``step`` metres. A junction's and its walking areas'
 points blend the heights of the ends of the lanes that meet it (weights 1/d^4: at a lane's end
@@ -79,6 +82,20 @@ CONFORM_MAX_M = 1.6             # (further apart than this somewhere: a bridge o
 CONFORM_NODE_CLEAR_M = 15.0    # roads meeting at a node conform only this far beyond its junction
 CONFORM_MIN_OVERLAP_M = 1.0     # (of the cross-section inside the other road's lane: a sliver
                                 # where two roads' lanes graze near a junction does not count)
+#: twin roads (two edges between the same two nodes: a street's one-way halves) conform
+#: wherever a cross-section reaches this far into the other's lane, up to their nodes (both end
+#: on the same junction planes, so there is nothing to fight there)
+CONFORM_TWIN_MIN_OVERLAP_M = 0.05
+CONFORM_TWIN_NODE_CLEAR_M = 5.0
+#: a bridge deck's points more than this above the natural ground hold no terrain up (the
+#: ground under a bridge stays where it is: a river, a road in a cutting)
+DECK_CLEAR_M = 0.5
+#: a deck is this far above a vehicle lane that passes under it (a clearance of 4.5 m and the
+#: deck), rising to it at DECK_GRADE
+DECK_CLEARANCE_M = 5.0
+DECK_THICKNESS_M = 0.4          # (its underside, drawn only)
+DECK_GRADE = 0.06
+DECK_MAX_GRADE = 0.08
 #: how far a sidewalk may reach into a vehicle lane of another road before that piece of it is
 #: left out (m)
 SIDEWALK_INTRUSION_M = 0.3
@@ -104,6 +121,7 @@ class RoadGeometry:
     support_hw: np.ndarray = None                  # (n,) ground-is-road radius at each point
     support_car: np.ndarray = None                 # (n,) True where cars drive (lanes, junctions)
     support_tris: np.ndarray = None                # (m, 3) the drivable surface's triangles over support_pts
+    support_hold: np.ndarray = None                # (n,) False where a bridge's deck is above the ground
     stats: dict = field(default_factory=dict)
     net: object = None
 
@@ -619,10 +637,146 @@ def carriageway_parts(net) -> list:
     return out
 
 
+def _deck_clearance(RP, idx, own_e, hw, under_e, higher, lane_edge, onto_profile) -> np.ndarray:
+    """For :func:`_bridge_decks`: for the deck's profile points ``idx`` (of edges ``own_e``,
+    half widths ``hw``), the height the deck must reach there: :data:`DECK_CLEARANCE_M` over
+    the highest vehicle lane within ``hw`` of it of an edge in ``under_e`` (a mask of edges),
+    but near a node where that edge meets the deck's (:data:`CONFORM_NODE_CLEAR_M` beyond its
+    junction); NaN where none. (Junctions under a deck too: no better in Portland, worse in
+    Lauf, where decks then stayed down.)"""
+    need = np.full(len(idx), np.nan)
+    veh, cores, fn, tn, nxy, nrad = higher[0], higher[1], higher[3], higher[4], higher[6], higher[7]
+    if not len(idx) or not len(veh):
+        return need
+    pts = shapely.points(RP[idx])
+    qi, li = shapely.STRtree(cores).query(pts, predicate="dwithin", distance=float(hw.max()))
+    B, A = lane_edge[veh[li]], own_e[qi]
+    ok = under_e[B]
+    Q = RP[idx[qi]]
+    for a in (fn[A], tn[A]):            # (a road that meets the deck: not near where it does)
+        shared = (a == fn[B]) | (a == tn[B])
+        d = np.hypot(Q[:, 0] - nxy[a, 0], Q[:, 1] - nxy[a, 1])
+        ok &= ~shared | (d > nrad[a] + CONFORM_NODE_CLEAR_M)        # (NaN: never far)
+    qi, li = qi[ok], li[ok]
+    ok = shapely.distance(pts[qi], cores[li]) <= hw[qi]
+    qi, li = qi[ok], li[ok]
+    top = np.full(len(idx), -np.inf)
+    if len(qi):
+        zu = onto_profile(RP[idx[qi]], veh[li], lane_edge[veh[li]]) + DECK_CLEARANCE_M
+        fin = np.isfinite(zu)
+        np.maximum.at(top, qi[fin], zu[fin])
+    return np.where(np.isfinite(top), top, np.nan)
+
+
+def _bridge_decks(edges, ref_e, rg, rs, rtot, rz) -> np.ndarray:
+    """Bridges (OSM ``bridge=*``) as decks (``rz`` in place); returns the mask of the profiles
+    that are a deck.
+
+    A profile sampled from the ground took a bridge down into what it spans: Portland's
+    bridges over the Willamette and the I-405 cutting dipped up to 20 m, and a car on an
+    overpass ran into the motorway's surface at the bottom of the dip. A deck runs straight
+    between its nodes; the nodes where it meets the ground (abutments: a road that is no
+    bridge meets it there, a drivable one where the deck is drivable, so that steps down from
+    a bridge are not abutments; or the bridge ends there) keep their height, those along the
+    bridge (a ramp joining it, a bridge mapped in pieces) take the length-weighted mean of their
+    neighbours' along it (solved for all at once). Where a road passes under it, it rises
+    later (:func:`_raise_decks`)."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import spsolve
+
+    n = len(ref_e)
+    deck = np.array([bool(getattr(edges[int(e)], "bridge", False)) for e in ref_e], dtype=bool)
+    if not deck.any():
+        return deck
+    first = np.r_[0, np.nonzero(rg[1:] != rg[:-1])[0] + 1]
+    last = np.r_[first[1:] - 1, len(rg) - 1]
+    num: dict = {}
+    fn = np.array([num.setdefault(edges[int(e)].from_node, len(num)) for e in ref_e], dtype=np.int64)
+    tn = np.array([num.setdefault(edges[int(e)].to_node, len(num)) for e in ref_e], dtype=np.int64)
+    m = len(num)
+    drv = np.array([edges[int(e)].drivable for e in ref_e], dtype=bool)
+    ends = np.concatenate([fn, tn])
+    at = lambda mask: np.bincount(ends, np.tile(mask, 2).astype(float), m) > 0      # noqa: E731
+    ground = np.bincount(ends, rz[np.concatenate([first, last])], m) / np.maximum(np.bincount(ends, minlength=m), 1)
+    # (a bridge's end where nothing else meets it: one neighbour along decks, "X" and "-X" one)
+    nb = np.unique(np.column_stack([np.r_[fn[deck], tn[deck]], np.r_[tn[deck], fn[deck]]]), axis=0)
+    degree = np.bincount(nb[:, 0], minlength=m)
+    abut = at(~deck & drv) | (~at(deck & drv) & at(~deck)) | (degree == 1)
+    on = at(deck) & ~abut                           # nodes along a bridge: unknown
+    h = ground.copy()
+    if on.any():
+        # each unknown node: sum over its deck profiles of w (h - h_other) = 0, w = 1 / length
+        # (a tiny pull to its ground: a bridge that meets the ground nowhere stays on it)
+        w = 1.0 / np.maximum(rtot[:n][deck], 1.0)
+        a, b = fn[deck], tn[deck]
+        idx = -np.ones(m, dtype=np.int64)
+        idx[on] = np.arange(int(on.sum()))
+        rows, cols, vals = [], [], []
+        rhs = np.zeros(int(on.sum()))
+        for p, q in ((a, b), (b, a)):
+            sel = on[p] & (p != q)
+            rows += [idx[p[sel]]]
+            cols += [idx[p[sel]]]
+            vals += [w[sel]]
+            known = sel & ~on[q]
+            np.add.at(rhs, idx[p[known]], w[known] * ground[q[known]])
+            unk = sel & on[q]
+            rows += [idx[p[unk]]]
+            cols += [idx[q[unk]]]
+            vals += [-w[unk]]
+        eps = 1e-6 * float(np.max(w))
+        k = int(on.sum())
+        rows.append(np.arange(k))
+        cols.append(np.arange(k))
+        vals.append(np.full(k, eps))
+        rhs += eps * ground[on]
+        A = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(k, k))
+        h[on] = spsolve(A.tocsc(), rhs)
+    u = rs / np.maximum(rtot[rg], 1e-9)
+    pd = deck[rg]
+    z0, z1 = h[fn][rg], h[tn][rg]
+    rz[pd] = (z0 + u * (z1 - z0))[pd]
+    return deck
+
+
+def _raise_decks(edges, ref_e, rg, rs, rz, deck, clearance) -> int:
+    """Lowest OSM layer first, where a road passes under a deck (:func:`_bridge_decks`;
+    ``clearance(points, their edges, under-edge mask)``: the heights needed there,
+    :func:`_deck_clearance`; a deck of a lower layer counts as a road), the deck rises to clear
+    it at :data:`DECK_GRADE` (``rz`` in place) where it can: its ends stay, and from them it
+    rises at :data:`DECK_MAX_GRADE` at most (a short bridge over a road stays at its ends'
+    height, and the road under it crosses it there, conformed to it as an untagged bridge is:
+    reaching the clearance would take approaches OSM does not tag as the bridge). After the
+    junction planes, so that the roads under it have their heights. Returns how many profile
+    points rose."""
+    pd = deck[rg]
+    ne = max(len(edges), 1)
+    before = rz.copy()
+    layer_e = np.array([e.layer for e in edges], dtype=np.int64)
+    deck_e = np.zeros(ne, dtype=bool)
+    deck_e[ref_e[deck]] = True
+    layer = layer_e[ref_e]
+    for L in np.unique(layer[deck]):
+        idx = np.flatnonzero(pd & (layer[rg] == L))
+        need = clearance(idx, ref_e[rg[idx]], ~deck_e | (layer_e < L))
+        for g in np.unique(rg[idx[np.isfinite(need)]]):
+            i = np.flatnonzero(rg == g)
+            # (from its ends, which stay, at DECK_MAX_GRADE at most: where a deck cannot rise
+            # enough over every road under it, it stays, and they cross at its height, conformed)
+            cap = np.minimum(rz[i[0]] + DECK_MAX_GRADE * rs[i], rz[i[-1]] + DECK_MAX_GRADE * (rs[i[-1]] - rs[i]))
+            c = (rg[idx] == g) & np.isfinite(need)
+            nc, sc = need[c], rs[idx[c]]
+            if np.any(nc > np.interp(sc, rs[i], cap) + 1e-6):
+                continue        # (partly raised, it would stand lower than a car over a road)
+            env = np.max(nc[None, :] - DECK_GRADE * np.abs(rs[i][:, None] - sc[None, :]), axis=1)
+            rz[i] = np.maximum(rz[i], np.minimum(env, cap))
+    return int(np.sum(rz > before + 1e-6))
+
+
 def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, junctions=None,
                      max_grade: float = JUNCTION_MAX_GRADE, grade_weight: float = 40.0, tie_weight: float = 3.0,
                      ridge: float = 0.5, planes_out: dict | None = None,
-                     max_edge_grade: float = EDGE_MAX_GRADE) -> int:
+                     max_edge_grade: float = EDGE_MAX_GRADE, deck=None) -> int:
     """Make the ends of the edges that meet at a node lie on one plane (``rz`` in place).
 
     Each edge's profile is sampled from the ground, so the roads at a junction on a hillside
@@ -640,7 +794,8 @@ def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, juncti
     different roads that overlap in plan (``half_width`` per profile: the edge's half width)
     at one height where they overlap (``tie_weight`` per profile point), as are a junction
     (``junctions``: id -> polygon ring; its surface is close to its plane) and another
-    junction or another node's road that overlaps it. Each end moves onto
+    junction or another node's road that overlaps it (but for a bridge's deck, ``deck`` per
+    profile, and what it passes over). Each end moves onto
     its plane and each edge's profile takes its two moves linearly along its length. (Moving
     the ends onto planes set by their own node alone made the short edges between two
     junctions take the difference, Monaco's lanes steeper than 70 % grew 3.4 times; without
@@ -716,6 +871,8 @@ def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, juncti
         ga, gb = rg[i], rg[j]
         dist = np.hypot(*(RP[i] - RP[j]).T)
         ok = (ga != gb) & (dist < half_width[ga] + half_width[gb] - 0.5)
+        if deck is not None:
+            ok &= deck[ga] == deck[gb]
         i, j, ga, gb = i[ok], j[ok], ga[ok], gb[ok]
         if len(i):
             t = len(i)
@@ -728,7 +885,7 @@ def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, juncti
             nr += t
     if junctions:
         nr = _junction_ties(junctions, ids, node, n, RP, rg, u, r, rz, mx, my, mz, gx, gy, tie_weight,
-                            nr, rows, cols, vals, rhs)
+                            nr, rows, cols, vals, rhs, deck=deck)
     A = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(nr, m))
     c = spsolve((A.T @ A).tocsc(), A.T @ np.concatenate(rhs))
     dz_end = c[node] - r
@@ -780,13 +937,13 @@ def _junction_clusters(junctions: dict, reach: float = 0.3, cluster_m: float = 4
 
 
 def _junction_ties(junctions, ids, node, n, RP, rg, u, r, rz, mx, my, mz, gx, gy, weight, nr,
-                   rows, cols, vals, rhs, reach: float = 0.5) -> int:
+                   rows, cols, vals, rhs, reach: float = 0.5, deck=None) -> int:
     """Rows for :func:`_junction_planes` (appended to rows/cols/vals/rhs; returns the new row
     count) that put a junction's plane at the height of what overlaps it: another junction
     (at each polygon's corners within ``reach`` of the other; two junctions side by side on a
     hillside met at a 0.25 m step, which a turning car caught) and the profile points (every
-    other one) of roads of other nodes inside it. Junctions whose polygon is invalid are left
-    out."""
+    other one) of roads of other nodes inside it (not of a bridge's deck: ``deck`` per
+    profile). Junctions whose polygon is invalid are left out."""
     jid = [j for j in junctions if j in ids]
     if not jid:
         return nr
@@ -833,6 +990,8 @@ def _junction_ties(junctions, ids, node, n, RP, rg, u, r, rz, mx, my, mz, gx, gy
         kj = k[ji]
         ka0, ka1 = node[g], node[n + g]
         ok = (ka0 != kj) & (ka1 != kj)
+        if deck is not None:
+            ok &= ~deck[g]
         pi, g, kj, ka0, ka1 = pi[ok], g[ok], kj[ok], ka0[ok], ka1[ok]
         t = len(pi)
         if t:
@@ -908,7 +1067,8 @@ def _higher_roads(edges, lanes, lane_edge, junctions):
     :data:`SIDEWALK_INTRUSION_M` along each side), each edge's rank (OSM layer, a bridge being
     1; netconvert's priority, vehicle lanes, width, then the id), its nodes' numbers, and
     the nodes' positions and radii (their junction shape's farthest point; NaN and 0 for a
-    node without a junction)."""
+    node without a junction), which edges are a bridge's deck (:func:`_deck_clearance`), and
+    each edge's opposite ("X" and "-X"; -1: none)."""
     ne = len(edges)
     veh = np.array([k for k, ln in enumerate(lanes) if ln.drivable and not (ln.allowed and ln.allowed <= RAIL_CLASSES)],
                    dtype=np.int64)
@@ -930,7 +1090,10 @@ def _higher_roads(edges, lanes, lane_edge, junctions):
             nxy[k] = (j.x, j.y)
             if j.shape is not None and len(j.shape):
                 nrad[k] = float(np.max(np.hypot(j.shape[:, 0] - j.x, j.shape[:, 1] - j.y)))
-    return veh, cores, rank, fn, tn, shapely.bounds(cores), nxy, nrad
+    deck = np.array([bool(getattr(e, "bridge", False)) for e in edges], dtype=bool)
+    num = {e.id: k for k, e in enumerate(edges)}
+    opp = np.array([num.get(e.id[1:] if e.id.startswith("-") else "-" + e.id, -1) for e in edges], dtype=np.int64)
+    return veh, cores, rank, fn, tn, shapely.bounds(cores), nxy, nrad, deck, opp
 
 
 def _box_pairs(bmin, bmax, boxes, cell: float = 25.0):
@@ -949,12 +1112,12 @@ def _box_pairs(bmin, bmax, boxes, cell: float = 25.0):
     return i[ok], j[ok]
 
 
-def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None):
+def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins: bool = False):
     """For :func:`_conform_to_higher_roads`: the points (numbers) whose cross-section runs far
     enough inside a vehicle lane of a higher-ranked road that their road does not meet at a
     node, with that lane (number among the vehicle lanes) and its edge: the highest-ranked
-    one per point."""
-    veh, cores, rank, fn, tn, core_box, nxy, nrad = higher
+    one per point. With ``twins``, twin roads (:data:`CONFORM_TWIN_MIN_OVERLAP_M`) count too."""
+    veh, cores, rank, fn, tn, core_box, nxy, nrad, _, opp = higher
     none = np.zeros(0, np.int64)
     sel = np.arange(len(P)) if only is None else np.flatnonzero(only)
     if not len(sel):
@@ -969,21 +1132,26 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None):
     # over each other (Lauf: 0.1-0.2 m apart in height at a bend, a step the car ran into)
     ok = rank[B] > rank[A]
     Q = P[sel[qi]]
+    # (a street's two directions share one profile already: no twins)
+    twin = (((fn[A] == fn[B]) & (tn[A] == tn[B])) | ((fn[A] == tn[B]) & (tn[A] == fn[B]))) & twins & (opp[A] != B)
     for a in (fn[A], tn[A]):
         shared = (a == fn[B]) | (a == tn[B])
         d = np.hypot(Q[:, 0] - nxy[a, 0], Q[:, 1] - nxy[a, 1])
-        ok &= ~shared | (d > nrad[a] + CONFORM_NODE_CLEAR_M)        # (NaN: never far)
-    qi, vi, B = qi[ok], vi[ok], B[ok]
+        ok &= ~shared | (d > nrad[a] + np.where(twin, CONFORM_TWIN_NODE_CLEAR_M, CONFORM_NODE_CLEAR_M))  # (NaN: never far)
+    qi, vi, B, twin = qi[ok], vi[ok], B[ok], twin[ok]
     if not len(qi):
         return none, none, none
     sections = shapely.linestrings(np.stack([lo[qi], hi[qi]], axis=1))
     ok = shapely.intersects(cores[vi], sections)            # (prepared: fast)
-    qi, vi, B, sections = qi[ok], vi[ok], B[ok], sections[ok]
-    ok = shapely.length(shapely.intersection(sections, cores[vi])) >= CONFORM_MIN_OVERLAP_M
-    pi, vi, B = sel[qi[ok]], vi[ok], B[ok]
+    qi, vi, B, twin, sections = qi[ok], vi[ok], B[ok], twin[ok], sections[ok]
+    ok = shapely.length(shapely.intersection(sections, cores[vi])) >= np.where(
+        twin, CONFORM_TWIN_MIN_OVERLAP_M, CONFORM_MIN_OVERLAP_M)
+    pi, vi, B, twin = sel[qi[ok]], vi[ok], B[ok], twin[ok]
     if not len(pi):
         return none, none, none
-    o = np.lexsort((rank[B], pi))                   # per point, the highest-ranked road
+    # per point, the highest-ranked road; a twin only where no other road is (a Monaco service
+    # road taken up to its twin stood 0.23 m through a street it runs under)
+    o = np.lexsort((rank[B] + np.where(twin, 0, len(rank)), pi))
     pi, vi, B = pi[o], vi[o], B[o]
     top = np.r_[pi[1:] != pi[:-1], True]
     return pi[top], vi[top], B[top]
@@ -991,7 +1159,7 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None):
 
 def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_edge, halfw, onto,
                              lower_only: bool = False, only=None, fade: float = CONFORM_FADE_M,
-                             cache: dict | None = None) -> int:
+                             cache: dict | None = None, twins: bool = False) -> int:
     """Heights ``z`` (in place) of the points `P` (lines `g`, arc length `s`) of roads that
     overlap a higher-ranked road without meeting it at a node (or far from the node where they
     meet: :data:`CONFORM_NODE_CLEAR_M`): where a point's cross-section
@@ -1000,8 +1168,9 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     (``onto(points, lane numbers, edge numbers)``); the move fades out along the line over
     ``fade`` metres either side. With ``lower_only``, points only move down; ``only`` (a
     mask) limits the points looked at (not the fade); ``cache`` (a dict) keeps which points
-    overlap which roads for another call on the same points. Two roads that
-    are more than :data:`CONFORM_MAX_M` apart in height anywhere they overlap are a bridge and
+    overlap which roads for another call on the same points; ``twins`` (the edges' profiles,
+    before the junction planes) conforms twin roads too (:data:`CONFORM_TWIN_MIN_OVERLAP_M`,
+    up to their nodes). Two roads that are more than :data:`CONFORM_MAX_M` apart in height anywhere they overlap are a bridge and
     the road under it: neither moves.
 
     Roads that cross without a junction are a bridge or tunnel that OSM does not tag (a
@@ -1017,7 +1186,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     if cache is not None and "pairs" in cache:
         pi, vi, B = cache["pairs"]
     else:
-        pi, vi, B = _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only)
+        pi, vi, B = _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only, twins)
         if cache is not None:
             cache["pairs"] = (pi, vi, B)
     if not len(pi):
@@ -1059,9 +1228,9 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
 def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry:
     """Meshes for every SUMO edge, junction, walking area and crossing of `net`.
 
-    `ground(x, y)` is the natural terrain height (vectorised). `on_support(pts, hw, car)`, if
-    given, is called with the levelling support (:attr:`RoadGeometry.support_pts`,
-    ``support_hw`` and ``support_car``) as soon as it is complete, before the rest of the meshing (lane strips,
+    `ground(x, y)` is the natural terrain height (vectorised). `on_support(pts, hw, car, tris,
+    hold)`, if given, is called with the levelling support (:attr:`RoadGeometry.support_pts`,
+    ``support_hw``, ``support_car``, ``support_tris``, ``support_hold``) as soon as it is complete, before the rest of the meshing (lane strips,
     markings, walking areas, crossings), so that the terrain can be levelled meanwhile."""
     geo = RoadGeometry(net=net)
     edges, lanes, lane_edge, refs = _road_lanes(net)
@@ -1091,18 +1260,25 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
         z, _ = _onto_profiles(RP, rg, rz, pts, gB)
         return np.where(gB >= 0, z, np.nan)
 
+    # bridges' decks: straight between where they meet the ground, and clear of the roads under them
+    edge_deck = higher[8]
+    deck = _bridge_decks(edges, ref_e, rg, rs, rtot, rz)      # (per profile: a bridge's deck)
+
     # (roads with vehicle lanes: a footway's lanes on a road are left out, as sidewalks are)
     vehicle_edge = np.bincount(lane_edge[higher[0]], minlength=len(edges)) > 0
     overlaps: dict = {}
     conform = lambda: _conform_to_higher_roads(edges, lanes, lane_edge, higher, RP, rg, rs, rz,   # noqa: E731
                                                ref_e[rg], edge_hw[ref_e[rg]], onto_profile,
-                                               only=vehicle_edge[ref_e[rg]], cache=overlaps)
+                                               only=vehicle_edge[ref_e[rg]], cache=overlaps, twins=True)
     conform()
     planes: dict = {}
     ends_moved = _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=edge_hw[ref_e], junctions=jrings,
-                                  planes_out=planes)
+                                  planes_out=planes, deck=deck)
 
     conformed = conform()
+    if deck.any():
+        _raise_decks(edges, ref_e, rg, rs, rz, deck, lambda idx, own_e, under_e: _deck_clearance(
+            RP, idx, own_e, edge_hw[own_e], under_e, higher, lane_edge, onto_profile))
 
     # 2. lane centrelines, resampled, with heights from their edge's profile
     LP, lg = _concat([l.shape for l in lanes])
@@ -1145,6 +1321,14 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     sup_hw = [hwk, np.zeros(len(corners))]
     car_k = ~(side | rail)[cg[pt_keep]]
     sup_car = [car_k, np.concatenate([car_k, car_k])]
+    # (a bridge's deck, its junctions along it: held up by no terrain where above the ground)
+    dk = edge_deck[lane_edge[cg[pt_keep]]]
+    sup_deck = [dk, np.concatenate([dk, dk])]
+    touch: dict = {}
+    for e, d in zip(edges, edge_deck):
+        for j in (e.from_node, e.to_node):
+            touch[j] = touch.get(j, True) and bool(d)
+    deck_junctions = {j for j, d in touch.items() if d}
     # the drivable surface's triangles over the support points (the lanes' strips as
     # `_strips` makes them, the junctions' and gap lanes' meshes below): the terrain is cleared
     # under the whole surface, not only under its points
@@ -1277,17 +1461,21 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
             # at the height of its own surface (its centroid at the height of the nearest lane,
             # levelled across the whole polygon, left a tilted Monaco junction 0.3 m under the
             # ground on its low side; a car drove into the next lane's edge there)
-            Q = _interior_points([polys[k] for k in keep], JUNCTION_SUPPORT_STEP)
-            if len(Q):
-                qz = _top_surface_z(Q, [part])
-                ok = np.isfinite(qz)
-                sup.append(np.column_stack([Q[ok], qz[ok]]))
-                sup_hw.append(np.full(int(ok.sum()), 0.5 * JUNCTION_SUPPORT_STEP))
-                sup_car.append(np.ones(int(ok.sum()), dtype=bool))
+            on_deck = np.array([pid[k] in deck_junctions for k in keep], dtype=bool)
+            for d in (False, True):
+                Q = _interior_points([polys[k] for k, dd in zip(keep, on_deck) if dd == d], JUNCTION_SUPPORT_STEP)
+                if len(Q):
+                    qz = _top_surface_z(Q, [part])
+                    ok = np.isfinite(qz)
+                    sup.append(np.column_stack([Q[ok], qz[ok]]))
+                    sup_hw.append(np.full(int(ok.sum()), 0.5 * JUNCTION_SUPPORT_STEP))
+                    sup_car.append(np.ones(int(ok.sum()), dtype=bool))
+                    sup_deck.append(np.full(int(ok.sum()), d))
             sup_tris.append(F + sum(map(len, sup)))      # (V's first index in the support)
             sup.append(V)
             sup_hw.append(np.zeros(len(V)))
             sup_car.append(np.ones(len(V), dtype=bool))
+            sup_deck.append((remap[vg] >= 0) & on_deck[np.maximum(remap[vg], 0)])
         return part
 
     junction_part = polygon_part("asphalt")
@@ -1313,16 +1501,24 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
         sup.append(np.column_stack([G, gz]))
         sup_hw.append(ghw)
         sup_car.append(np.ones(len(G), dtype=bool))
+        sup_deck.append(np.zeros(len(G), dtype=bool))
         sup_tris.append(f + sum(map(len, sup)))
         sup.append(v)
         sup_hw.append(np.zeros(len(v)))
         sup_car.append(np.ones(len(v), dtype=bool))
+        sup_deck.append(np.zeros(len(v), dtype=bool))
     geo.support_pts = np.vstack(sup)
     geo.support_hw = np.concatenate(sup_hw)
     geo.support_car = np.concatenate(sup_car)
     geo.support_tris = np.vstack(sup_tris).astype(np.int64)
+    # (a deck's points above the ground hold no terrain up; the terrain is still cleared under them)
+    sdeck = np.concatenate(sup_deck)
+    geo.support_hold = np.ones(len(sdeck), dtype=bool)
+    if sdeck.any():
+        P = geo.support_pts[sdeck]
+        geo.support_hold[sdeck] = P[:, 2] - np.asarray(ground(P[:, 0], P[:, 1]), dtype=float) <= DECK_CLEAR_M
     if on_support is not None:
-        on_support(geo.support_pts, geo.support_hw, geo.support_car, geo.support_tris)
+        on_support(geo.support_pts, geo.support_hw, geo.support_car, geo.support_tris, geo.support_hold)
 
     # 4. lanes as strips
     ids = [lanes[k].id for k in range(len(lanes))]
@@ -1344,6 +1540,26 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
                            seg_mask=seg_keep[at[:-1]] if kind != "rail" else None, tilt=tilt[pm])
         parts[kind].append(_part(kind, v, f, fg, len(sel), [ids[k] for k in sel], ["lane"] * len(sel),
                                  [osm[k] for k in sel], cent[sel]))
+    # the underside of bridges' decks, DECK_THICKNESS_M under their lanes where they stand
+    # above the ground (class "deck", drawn only: PyBullet's renderer draws a face from its
+    # front alone, and a camera on the road under a bridge saw nothing over it)
+    dmask = edge_deck[lane_edge] & ~rail
+    if dmask.any():
+        sel = np.nonzero(dmask)[0]
+        remap = -np.ones(len(lanes), dtype=np.int64)
+        remap[sel] = np.arange(len(sel))
+        pm = dmask[cg]
+        at = np.nonzero(pm)[0]
+        high = cz[at] - np.asarray(ground(C[at, 0], C[at, 1]), dtype=float) > DECK_CLEAR_M + DECK_THICKNESS_M
+        v, f, fg = _strips(C[pm], remap[cg[pm]], cz[pm] - DECK_THICKNESS_M, hw[pm], 0.0,
+                           seg_mask=seg_keep[at[:-1]] & high[:-1] & high[1:], tilt=tilt[pm])
+        has = np.unique(fg)                 # (the lanes with an underside at all)
+        if len(has):
+            back = -np.ones(len(sel), dtype=np.int64)
+            back[has] = np.arange(len(has))
+            sel = sel[has]
+            parts["deck"] = [_part("deck", v, f[:, ::-1], back[fg], len(sel), [ids[k] for k in sel],
+                                   ["deck"] * len(sel), [osm[k] for k in sel], cent[sel])]
 
     # 5. lane markings on vehicle lanes: dashed between lanes of one edge, solid at the edges
     _markings(parts, edges, lanes, lane_edge, drive, C, cg, cz, cs, hw, tilt)

@@ -136,7 +136,8 @@ def _nodes_near(grid: TerrainGrid, pts: np.ndarray, reach: float) -> np.ndarray:
 
 
 def level_under_roads(grid: TerrainGrid, pts: np.ndarray, halfwidth: np.ndarray,
-                      blend_m: float | None = None, clear=True, tris: np.ndarray | None = None) -> dict:
+                      blend_m: float | None = None, clear=True, tris: np.ndarray | None = None,
+                      hold: np.ndarray | None = None) -> dict:
     """Level the grid to the road surface.
 
     `pts` (n, 3) are dense road-surface points (x, y, z) and `halfwidth` (n,) the distance
@@ -146,10 +147,33 @@ def level_under_roads(grid: TerrainGrid, pts: np.ndarray, halfwidth: np.ndarray,
     natural ground. With `clear` (True, or a mask of `pts`: the points where cars drive),
     then :func:`clear_road_points` of those points, and, given `tris` (m, 3: triangles of the
     drivable surface over `pts`), of :func:`surface_check_points` too: the terrain is then
-    below the whole surface, not only below its points.
+    below the whole surface, not only below its points. ``hold`` (a mask of `pts`) limits the
+    points the ground is levelled to (a bridge's deck above the ground holds none up), not
+    those it is cleared under.
     """
     if len(pts) == 0:
         return {"levelled_nodes": 0, "blended_nodes": 0, "max_change_m": 0.0}
+    all_pts = pts
+    if hold is not None:
+        hold = np.asarray(hold, dtype=bool)
+        pts, halfwidth = pts[hold], halfwidth[hold]
+    if len(pts) == 0:          # (nothing to level to: only the clearing)
+        z0 = grid.z.ravel().copy()
+        out = {"levelled_nodes": 0, "blended_nodes": 0}
+    else:
+        z0, out = _level_to(grid, pts, halfwidth, blend_m)
+    if clear is not False:
+        P = all_pts if clear is True else all_pts[np.asarray(clear, dtype=bool)]
+        if tris is not None and len(tris):
+            P = np.vstack([P, surface_check_points(grid, all_pts, tris)])
+        out["lowered_nodes"] = clear_road_points(grid, P)
+    out["max_change_m"] = float(np.max(np.abs(grid.z.ravel() - z0))) if grid.z.size else 0.0
+    return out
+
+
+def _level_to(grid: TerrainGrid, pts: np.ndarray, halfwidth: np.ndarray, blend_m: float | None):
+    """The levelling of :func:`level_under_roads` (not the clearing): the grid's heights
+    before, and the counts."""
     sp = grid.spacing
     blend_m = sp if blend_m is None else blend_m
     tree = cKDTree(pts[:, :2])
@@ -186,14 +210,7 @@ def level_under_roads(grid: TerrainGrid, pts: np.ndarray, halfwidth: np.ndarray,
     w = np.clip(1.0 - (di - inner) / blend_m, 0.0, 1.0)     # 1 on the road, 0 beyond the blend
     z[hi] = w * road_z + (1.0 - w) * z0[hi]
     grid.z = z.reshape(grid.z.shape)
-    out = {"levelled_nodes": int(np.sum(w >= 1.0)), "blended_nodes": int(np.sum((w > 0) & (w < 1)))}
-    if clear is not False:
-        P = pts if clear is True else pts[np.asarray(clear, dtype=bool)]
-        if tris is not None and len(tris):
-            P = np.vstack([P, surface_check_points(grid, pts, tris)])
-        out["lowered_nodes"] = clear_road_points(grid, P)
-    out["max_change_m"] = float(np.max(np.abs(grid.z.ravel() - z0))) if len(z) else 0.0
-    return out
+    return z0, {"levelled_nodes": int(np.sum(w >= 1.0)), "blended_nodes": int(np.sum((w > 0) & (w < 1)))}
 
 
 def _ranks(counts: np.ndarray) -> np.ndarray:

@@ -878,11 +878,127 @@ def test_lauf_with_zipped_srtm(tmp_path):
     assert 300 < w["terrain"]["z_range_m"][0] < 430
 
 
+def _bridge_lane_heights(out: Path, w: dict):
+    """Per lane of a bridge (OSM bridge=*) in the world's asphalt tiles: (lane, arc lengths
+    along it, surface heights there), the heights read back from the meshes."""
+    import shapely
+    import trimesh
+
+    from cosim.world import World
+
+    net = read_net(out / w["net_file"], internal=False)
+    lanes = {ln.id: ln for e in net.edges.values() if e.bridge for ln in e.lanes}
+    world = World(out)
+    got = {}
+    for c in world.chunks.values():
+        for tile in c.get("tiles", {}).values():
+            if "asphalt" not in tile:
+                continue
+            scene = trimesh.load(c["_base"] / tile["asphalt"], group_material=False, split_groups=True,
+                                 process=False, force="scene")
+            for name, g in scene.geometry.items():
+                lid = name.split("/", 1)[-1]
+                if name.startswith("lane/") and lid in lanes:
+                    got.setdefault(lid, []).append(g.vertices)
+    out_rows = []
+    for lid, vs in got.items():
+        V = np.vstack(vs)
+        s = shapely.line_locate_point(shapely.LineString(lanes[lid].shape[:, :2]), shapely.points(V[:, :2]))
+        o = np.argsort(s)
+        out_rows.append((lanes[lid], s[o], V[o, 2]))
+    return out_rows
+
+
+def _check_bridge_decks(out: Path, w: dict, dem_path: Path):
+    """A bridge's deck runs straight between its ends: it no longer follows the ground
+    down into what it spans (here, with the NED DEM, the ground under a dozen of the centre's
+    bridges lies more than 3 m under the line between their ends; their lanes dipped up to
+    7.7 m), and the terrain under a deck stays the ground's, not raised up to it."""
+    from cosim.world import World
+    from netgen.dem import open_dem
+
+    world = World(out)
+    dem = open_dem([str(dem_path)])
+    rows = [r for r in _bridge_lane_heights(out, w) if r[1][-1] - r[1][0] > 20.0]
+    assert len(rows) >= 20, len(rows)
+    deep = 0
+    for lane, s, z in rows:
+        line = z[0] + (z[-1] - z[0]) * (s - s[0]) / (s[-1] - s[0])
+        assert np.max(line - z) < 1.0, f"{lane.id}: the deck dips {np.max(line - z):.2f} m"
+        t = np.linspace(s[0], s[-1], 40)
+        xy = _along(lane.shape[:, :2], t)
+        lon, lat = world.frame.to_lonlat(xy[:, 0], xy[:, 1])
+        ground = dem.sample(lon, lat)
+        deck = np.interp(t, s, z)
+        k = int(np.argmax(deck - ground))
+        if deck[k] - ground[k] > 3.0:
+            deep += 1
+            # the terrain under it: the ground's (levelled to nothing above it)
+            assert world.ground_z(xy[k:k + 1, 0], xy[k:k + 1, 1])[0] < deck[k] - 2.0, lane.id
+    assert deep >= 5, deep
+    # the decks' undersides (drawn only: class "deck"), facing down, 0.4 m under the lanes
+    import trimesh
+
+    from netgen.roads import DECK_THICKNESS_M
+
+    under = [g for c in world.chunks.values() for t in c.get("tiles", {}).values() if "deck" in t
+             for name, g in trimesh.load(c["_base"] / t["deck"], group_material=False, split_groups=True,
+                                         process=False, force="scene").geometry.items() if name.startswith("deck/")]
+    assert len(under) >= 10, len(under)
+    U = trimesh.util.concatenate(under)
+    assert (U.face_normals[:, 2] < -0.9).all()
+    pick = np.random.default_rng(4).choice(len(U.faces), 200, replace=False)
+    P = U.triangles_center[pick]
+    tops = _surface_heights(world, P[:, :2], layers=("asphalt", "sidewalk"))      # (footbridges too)
+    gap = np.array([min((h - z for h in hs if h > z), default=np.inf) for hs, z in zip(tops, P[:, 2])])
+    assert np.median(gap) == pytest.approx(DECK_THICKNESS_M, abs=0.03), np.median(gap)
+    assert (gap < DECK_THICKNESS_M + 0.1).mean() > 0.95, np.sort(gap)[-20:]
+
+
+def _along(line: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Points at arc lengths `t` along a polyline."""
+    seg = np.hypot(*np.diff(line, axis=0).T)
+    s = np.r_[0.0, np.cumsum(seg)]
+    return np.column_stack([np.interp(t, s, line[:, 0]), np.interp(t, s, line[:, 1])])
+
+
+def test_a_bridge_over_a_road_clears_it_or_meets_it(tmp_path):
+    """Kouvola: where a vehicle lane of a bridge (OSM bridge=*) crosses a vehicle lane of a road
+    under it, the two surfaces are either at one height (a short bridge that could not rise
+    enough within 8 % of its ends: the road crosses it, as before) or a car's clearance apart
+    (the deck risen 5 m over the motorway 7/15), never in between, where a car drives into the
+    deck. Before, every bridge lay on the ground: all 20 crossings were at one height."""
+    import shapely
+
+    from cosim.world import World
+
+    w = build_world(WorldConfig(preset="kouvola", chunks=1, out=str(tmp_path / "w"),
+                                cache_dir=str(tmp_path / "c")))
+    net = read_net(tmp_path / "w" / w["net_file"], internal=False)
+    normal = [e for e in net.edges.values() if e.function == "normal" and not e.tunnel]
+    decks = [ln for e in normal if e.bridge for ln in e.lanes if ln.drivable]
+    roads = [ln for e in normal if not e.bridge for ln in e.lanes if ln.drivable]
+    lines = np.array([shapely.LineString(ln.shape[:, :2]) for ln in roads])
+    tree = shapely.STRtree(lines)
+    pts = []
+    for d in decks:
+        L = shapely.LineString(d.shape[:, :2])
+        for k in tree.query(L, predicate="crosses"):
+            x = shapely.intersection(L, lines[k])
+            pts += [(g.x, g.y) for g in getattr(x, "geoms", [x]) if g.geom_type == "Point"]
+    assert len(pts) >= 10, len(pts)
+    gaps = np.array([h[-1] - h[0] for h in _surface_heights(World(tmp_path / "w"), np.array(pts))])
+    between = (gaps > 0.3) & (gaps < 4.5)
+    assert not between.any(), gaps[between]
+    assert np.sum(gaps >= 4.5) >= 2 and np.sum(gaps <= 0.3) >= 2, np.round(gaps, 2)
+
+
 def test_portland_with_geotiff_and_voids(tmp_path):
     osm = shared_file("osm/portland-central-2015.osm.pbf")
     dem = shared_file("dem/portland-ned.tif")
     w = _dem_world(tmp_path / "a", osm, dem, (45.5152, -122.6784), spacing=2.5)   # NED is 10 m itself
     _check_terrain_against_dem(tmp_path / "a" / "w", w, dem, np.random.default_rng(3))
+    _check_bridge_decks(tmp_path / "a" / "w", w, dem)
     nodata = shared_file("dem/portland-ned-nodata.tif")
     w2 = build_world(WorldConfig(osm=str(osm), dem=[str(nodata)], center=(45.5152, -122.6784), chunks=0,
                                  terrain_spacing_m=10.0, out=str(tmp_path / "b"), cache_dir=str(tmp_path / "cache")))
@@ -1183,7 +1299,7 @@ def _monaco_support(tmp_path, osm, grid, step):
                                 cache_dir=str(tmp_path / "c")))
     net = read_net(tmp_path / "w" / w["net_file"], internal=False)
     sup = {}
-    build_roads(net, grid.sample, step, on_support=lambda p, h, c, t: sup.update(p=p, h=h, c=c, t=t))
+    build_roads(net, grid.sample, step, on_support=lambda p, h, c, t, o: sup.update(p=p, h=h, c=c, t=t))
     return sup["p"], sup["h"], sup["c"], sup["t"]
 
 
@@ -1252,6 +1368,29 @@ def test_levelling_keeps_the_terrain_under_a_street_below_another():
     level_under_roads(g2, steep, np.full(len(y), 3.0))
     along = g2.sample_tri(np.zeros(33), np.arange(-40.0, 40.01, 2.5))
     assert np.allclose(along, 0.2 * np.arange(-40.0, 40.01, 2.5) - ROAD_SINK_M, atol=1e-6)
+
+
+def test_levelling_holds_no_terrain_up_to_a_deck():
+    """A bridge's deck 6 m over a valley floor (``hold`` False) raises no terrain (held, the
+    nodes along it took its height: an embankment across what it spans), and the terrain is
+    still cleared under a deck point that lies under the ground (a cut through a rise)."""
+    from netgen.terrain import ROAD_SINK_M, TerrainGrid, level_under_roads
+
+    x = np.arange(-60.0, 60.01, 2.5)
+    deck = np.column_stack([x, np.zeros_like(x), np.full_like(x, 6.0)])
+    hw = np.full(len(x), 3.0)
+    held = TerrainGrid(-100.0, -50.0, 5.0, np.zeros((21, 41)))
+    level_under_roads(held, deck, hw)
+    assert held.sample(np.array([0.0]), np.array([0.0]))[0] > 5.0
+    free = TerrainGrid(-100.0, -50.0, 5.0, np.zeros((21, 41)))
+    level_under_roads(free, deck, hw, hold=np.zeros(len(x), dtype=bool))
+    assert np.array_equal(free.z, np.zeros((21, 41)))
+    cut = deck.copy()
+    cut[:, 2] = -1.0                          # (under the ground: cleared, though not held)
+    g = TerrainGrid(-100.0, -50.0, 5.0, np.zeros((21, 41)))
+    out = level_under_roads(g, cut, hw, clear=True, hold=np.zeros(len(x), dtype=bool))
+    assert out["lowered_nodes"] > 0 and out["levelled_nodes"] == 0
+    assert g.sample_tri(x[5:-5], np.zeros(len(x) - 10)).max() <= -1.0 - ROAD_SINK_M + 1e-9
 
 
 def _surface_samples(pts, tris, per_tri: int, rng):
