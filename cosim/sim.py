@@ -116,6 +116,7 @@ class Simulation:
         self.driver = driver
         self.path = None
         self.route: list[str] = []
+        self._route_sent = None            # the route SUMO has as the ego's (set_ego_route)
         self.t = 0.0
         self.summary = Summary()
         self._frame_ms: list = []
@@ -338,6 +339,7 @@ class Simulation:
         self.traffic = self._traffic_kind(self.world.net_file, self._routes, **self._traffic_kw)
         self.traffic.setup()
         self.traffic.add_ego(route_edges=self.route)
+        self._route_sent = None
         self.traffic.set_ego_pose(st.x, st.y, st.yaw, max(0.0, st.speed))
         from .traffic import ActorsSnapshot
 
@@ -403,6 +405,13 @@ class Simulation:
         swapping = self._swap_next is not None or self._swap_adopting is not None
         if self.goal_xy is None and self.path.length - s_here < 120.0 and not swapping:
             self._extend_route()
+        if self.route is not self._route_sent and not swapping:
+            # SUMO's drivers see the ego coming at a junction only along its route there
+            self._route_sent = self.route
+            try:
+                self.traffic.set_ego_route(self.route)
+            except CosimError as e:
+                log.info("SUMO did not take the ego's route: %s", e)
         if self.goal_xy is not None and math.hypot(st.x - self.goal_xy[0], st.y - self.goal_xy[1]) < 10.0 \
                 and abs(st.speed) < 1.0:
             self.summary.arrived = True

@@ -307,6 +307,9 @@ class SumoTraffic(Component):
         self._ego_off_network = False
         self._ego_unstick = False
         self._unstick_sign = 1.0
+        self._ego_route: tuple = ()         # (set_ego_route) the edges the ego will drive
+        self._ego_route_road = ""           # the road the route was last checked on
+        self._ego_route_i = 0               # and where on the route that was
         self._ctx_anchor: str | None = None
         self._ctx_radius = DEFAULT_CONTEXT_RADIUS
         self._probe_xy: tuple | None = None
@@ -560,6 +563,8 @@ class SumoTraffic(Component):
                 self._ego_unstick = s.vehicle.getWaitingTime(EGO_ID) > 0.5 * self.time_to_teleport
             except self._exc:
                 pass
+        if self._ego_route and self._ego_in_sim:
+            self._keep_ego_route()
         if self.persons_yield and (self._ego_in_sim or self._held):
             self._persons_yield()
         n_tele = int(r.get(tc.VAR_TELEPORT_STARTING_VEHICLES_NUMBER, 0))
@@ -756,6 +761,45 @@ class SumoTraffic(Component):
         self._ego_off_network = False
         self._ego_pending_speed = max(0.0, float(speed))
         return True
+
+    def set_ego_route(self, edges) -> None:
+        """The edges the ego will drive (its planned path). Kept as its route in SUMO from the
+        edge it is on (:meth:`_keep_ego_route`): moved by ``moveToXY``, the ego's route is
+        otherwise the one edge it is on, and SUMO's drivers do not see it coming at a junction
+        (SUMO registers a vehicle's approach to the links of its route only; on the Kouvola
+        motorway a car turning left across the ego's path did not wait for it and ran into
+        it on the junction)."""
+        self._ego_route = tuple(e for e in edges if e and not e.startswith(":"))
+        self._ego_route_road = ""
+        self._ego_route_i = 0
+        if self._ego_in_sim:
+            self._keep_ego_route()
+
+    def _keep_ego_route(self) -> None:
+        """After a step: once the ego is on a new edge of its planned route, SUMO's route for
+        it is the rest of the planned one (moveToXY with keepRoute=2 keeps a route while the
+        ego stays on it, and replaces it with the edge it is on when it leaves it)."""
+        s = self._sim
+        try:
+            road = s.vehicle.getRoadID(EGO_ID)
+        except self._exc:
+            return
+        if road == self._ego_route_road or not road or road.startswith(":"):
+            return
+        self._ego_route_road = road
+        r = self._ego_route
+        i = next((k for k in range(self._ego_route_i, len(r)) if r[k] == road), None)   # (a route may
+        if i is None:                                                                   # pass an edge twice)
+            i = next((k for k in range(len(r)) if r[k] == road), None)
+        if i is None:
+            return
+        self._ego_route_i = i
+        rest = list(r[i:])
+        try:
+            if list(s.vehicle.getRoute(EGO_ID)[s.vehicle.getRouteIndex(EGO_ID):]) != rest:
+                s.vehicle.setRoute(EGO_ID, rest)
+        except self._exc as e:
+            log.debug("ego route %s... not taken: %s", rest[:3], e)
 
     def ego_state(self) -> dict | None:
         """The ego as SUMO sees it (centre, yaw, speed, road, lane), or None if not in SUMO."""
