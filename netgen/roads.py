@@ -82,9 +82,10 @@ CONFORM_MAX_M = 1.6             # (further apart than this somewhere: a bridge o
 CONFORM_NODE_CLEAR_M = 15.0    # roads meeting at a node conform only this far beyond its junction
 CONFORM_MIN_OVERLAP_M = 1.0     # (of the cross-section inside the other road's lane: a sliver
                                 # where two roads' lanes graze near a junction does not count)
-#: twin roads (two edges between the same two nodes: a street's one-way halves) conform
-#: wherever a cross-section reaches this far into the other's lane, up to their nodes (both end
-#: on the same junction planes, so there is nothing to fight there)
+#: twin roads (two edges between the same two nodes, not "X" and "-X": a street's one-way
+#: halves) conform, on their profiles, wherever a cross-section reaches this far into the
+#: other's lane, up to CONFORM_TWIN_NODE_CLEAR_M beyond their nodes' junctions (up to the
+#: nodes, they made steps at the junctions)
 CONFORM_TWIN_MIN_OVERLAP_M = 0.05
 CONFORM_TWIN_NODE_CLEAR_M = 5.0
 #: a bridge deck's points more than this above the natural ground hold no terrain up (the
@@ -638,7 +639,7 @@ def carriageway_parts(net) -> list:
 
 
 def _deck_clearance(RP, idx, own_e, hw, under_e, higher, lane_edge, onto_profile) -> np.ndarray:
-    """For :func:`_bridge_decks`: for the deck's profile points ``idx`` (of edges ``own_e``,
+    """For :func:`_raise_decks`: for the deck's profile points ``idx`` (of edges ``own_e``,
     half widths ``hw``), the height the deck must reach there: :data:`DECK_CLEARANCE_M` over
     the highest vehicle lane within ``hw`` of it of an edge in ``under_e`` (a mask of edges),
     but near a node where that edge meets the deck's (:data:`CONFORM_NODE_CLEAR_M` beyond its
