@@ -4,8 +4,10 @@ Tiles (250 m squares of a chunk) are the unit of streaming: each brings a terrai
 heightfield cut from its chunk's grid, the merged road, sidewalk and building meshes of the
 tile (static concave triangle meshes), lane markings (visual only), and the scenery
 instances standing in it (the colliders of its trees, poles, signs and benches merged into one
-triangle mesh). A tile is loaded a part at a time (terrain, each mesh class, scenery) within a
-per-frame time budget (``update``), so that no frame pays for a whole tile.
+triangle mesh). A tile is loaded a part at a time (terrain, each mesh class PART_FACES faces at a
+time from its binary copy, the scenery in runs of about as many) within a per-frame time
+budget (``update``), so that no frame pays for a whole tile: Bullet builds a triangle mesh's
+tree at about 1.2 us a face, and a whole class of a city tile took 3-6 ms.
 
 PyBullet does not free a mesh's memory when a body is removed, so shapes are pooled: a
 tile's collision and visual shapes are created once per file and reused whenever the tile
@@ -24,10 +26,14 @@ import numpy as np
 import pybullet as pb
 
 from models import prefab_dir
-from netgen.meshio import LAYER_COLOURS
+from netgen.meshio import COLLIDE_CLASSES, LAYER_COLOURS
 
 COLOURS = LAYER_COLOURS
-COLLIDE = {"asphalt", "sidewalk", "building", "rail"}
+COLLIDE = set(COLLIDE_CLASSES)
+#: a colliding mesh class of a tile is made this many faces at a time, from its binary copy
+#: (``<class>.npz``): Bullet builds a triangle mesh's tree at about 1.2 µs a face, and a whole
+#: class of a city tile (3,000-5,000 faces) took a frame 3-6 ms over its median of 2
+PART_FACES = 600
 COMPOUND_MAX = 16   # children per createCollisionShapeArray / createVisualShapeArray (PyBullet's limit)
 PREFAB_COLOURS = {"tree": (0.20, 0.45, 0.18, 1), "street_lamp": (0.35, 0.36, 0.38, 1),
                   "traffic_signal": (0.15, 0.15, 0.15, 1), "stop_sign": (0.80, 0.10, 0.10, 1),
@@ -235,7 +241,7 @@ class PhysicsWorld:
         tb = TileBodies()
         old = self.tiles.get(key) if key in self._stale else None
         if old is None:
-            return tb, self._tile_parts(key, tb), None
+            return tb, self._tile_parts(key, tb, PART_FACES), None
         return tb, self._replace_parts(key, tb, old), old
 
     def _finish_tile(self, key, job):
@@ -257,7 +263,7 @@ class PhysicsWorld:
         its class), so that the ground is never missing nor doubled. The stale tile stays in
         ``tiles`` (and ``covered``) until the new one is complete (``_finish_tile``)."""
         made = 0
-        for _ in self._tile_parts(key, tb):
+        for _ in self._tile_parts(key, tb, 0):        # (a class whole: one body for one)
             t0 = time.perf_counter()
             for kind in tb.kinds[made:]:
                 self._remove_kind(old, kind)
@@ -274,9 +280,11 @@ class PhysicsWorld:
                 if kind == "terrain":
                     self._release_heightfield(tb)
 
-    def _tile_parts(self, key, tb):
+    def _tile_parts(self, key, tb, part_faces: int = PART_FACES):
         """A tile's bodies, one part per iteration (the terrain, each mesh class, the
-        scenery), so that ``update`` can spread a tile over frames; ``tb.load_ms`` sums them."""
+        scenery), so that ``update`` can spread a tile over frames; ``tb.load_ms`` sums them.
+        With ``part_faces``, a colliding class with a binary copy (``<class>.npz``) comes that
+        many faces at a time, a body each (0: the class's OBJ, one body)."""
         c = self.client
         t0 = time.perf_counter()
         g = self.world.tile_terrain(key)
@@ -284,7 +292,7 @@ class PhysicsWorld:
             sh, base = self._heightfield(g)
             ny, nx = g.z.shape
             pos = [g.xmin + (nx - 1) * g.spacing / 2, g.ymin + (ny - 1) * g.spacing / 2, base]
-            vis = self._terrain_visual(key, g, pos) if self.visuals else -1
+            vis = self._terrain_visual(key, g, pos) if self.visuals else self._invisible()
             b = pb.createMultiBody(0, sh, vis, pos, useMaximalCoordinates=True, physicsClientId=c)
             tb.hf_shape = sh
             tb.bodies.append(b)
@@ -296,14 +304,33 @@ class PhysicsWorld:
             if not collide and not self.visuals:
                 continue
             t0 = time.perf_counter()
-            col, vis = self._shapes(f, kind, collide)
+            npz = f.with_suffix(".npz") if collide and part_faces else None
+            if npz is not None and npz.exists():
+                for col in self._part_shapes(npz, part_faces):
+                    b = pb.createMultiBody(0, col, -1, [0, 0, 0], useMaximalCoordinates=True, physicsClientId=c)
+                    tb.bodies.append(b)
+                    tb.kinds.append(kind)
+                    tb.load_ms += (time.perf_counter() - t0) * 1000.0
+                    yield
+                    t0 = time.perf_counter()
+                if not self.visuals:
+                    continue
+                col, vis = -1, self._shapes(f, kind, False)[1]      # (drawn whole)
+            else:
+                col, vis = self._shapes(f, kind, collide)
             b = pb.createMultiBody(0, col, vis, [0, 0, 0], useMaximalCoordinates=True, physicsClientId=c)
             tb.bodies.append(b)
             tb.kinds.append(kind)
             tb.load_ms += (time.perf_counter() - t0) * 1000.0
             yield
         t0 = time.perf_counter()
-        tb.bodies.extend(self._scenery_bodies(key))
+        groups = self._scenery_bodies(key, part_faces)
+        for n, bodies in enumerate(groups):
+            if n:                       # (a part each: the last with the tile's completion)
+                tb.load_ms += (time.perf_counter() - t0) * 1000.0
+                yield
+                t0 = time.perf_counter()
+            tb.bodies.extend(bodies)
         if self.visuals:
             self._chunk_visual_ref((key[0], key[1]), +1)
         tb.load_ms += (time.perf_counter() - t0) * 1000.0
@@ -345,6 +372,43 @@ class PhysicsWorld:
         self.unloads += 1
 
     # --- shapes -------------------------------------------------------------------------
+    def _invisible(self) -> int:
+        """A visual shape nobody sees, for a heightfield body without visuals: given none,
+        PyBullet makes the renderer's mesh of the heightfield itself, which took 1.6 of the
+        2.0 ms a terrain body cost."""
+        vis = self._shape_pool.get("invisible")
+        if vis is None:
+            vis = self._shape_pool["invisible"] = pb.createVisualShape(
+                pb.GEOM_SPHERE, radius=0.001, rgbaColor=[0, 0, 0, 0], physicsClientId=self.client)
+        return vis
+
+    def _part_shapes(self, npz: Path, part_faces: int):
+        """The collision shapes of a mesh class's binary copy, ``part_faces`` faces each, made
+        one per iteration as they are needed (pooled like ``_shapes``: a tile that comes back
+        reuses them, and one dropped half made goes on where it stopped)."""
+        made, total = self._shape_pool.setdefault(("parts", str(npz), part_faces), ([], [None]))
+        i, V, F = 0, None, None
+        while True:
+            if i < len(made):
+                yield made[i]
+                i += 1
+                continue
+            if total[0] is not None and i >= total[0]:
+                return
+            if F is None:
+                with np.load(npz) as d:
+                    V, F = d["v"].astype(np.float64), d["f"]
+                total[0] = (len(F) + part_faces - 1) // part_faces
+            if i >= total[0]:
+                return
+            Fi = F[i * part_faces:(i + 1) * part_faces]
+            used, inv = np.unique(Fi, return_inverse=True)
+            made.append(pb.createCollisionShape(pb.GEOM_MESH, vertices=V[used].tolist(),
+                                                indices=inv.ravel().tolist(),
+                                                flags=pb.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=self.client))
+            yield made[i]
+            i += 1
+
     def _shapes(self, f: Path, kind: str, collide: bool):
         key = (str(f), collide, self.visuals)
         got = self._shape_pool.get(key)
@@ -423,10 +487,12 @@ class PhysicsWorld:
                 cs = (pb.GEOM_BOX, 0.0, list(col["half_extents"]), 0.0, list(off))
             self._prefabs[kind] = (cs, None, m["file"])
 
-    def _scenery_bodies(self, key) -> list:
-        """The tile's scenery (trees, lamps, signals, signs, benches) as one static body: the
-        items' colliders (prefabs.json's cylinders and boxes, as 12-sided prisms and boxes)
-        merged into one triangle mesh. Bullet's step costs about 0.6 us per body, so one body
+    def _scenery_bodies(self, key, part_faces: int = 0):
+        """The tile's scenery (trees, lamps, signals, signs, benches), lists of bodies, one
+        list per iteration: the items' colliders (prefabs.json's cylinders and boxes, as
+        12-sided prisms and boxes) merged into one triangle mesh, or, with ``part_faces``, into
+        one mesh per run of items of about that many faces (a tile of trees took 5 ms a mesh),
+        the visual bodies (visuals on) with the last. Bullet's step costs about 0.6 us per body, so one body
         per item (hundreds per tile) cost more than the rest of the world together; and
         PyBullet takes about 0.25 ms per child to create a compound body, so compounds of 16
         primitives cost 20-45 ms per tile, where the mesh takes 1-3 ms (and a pooled one well
@@ -434,11 +500,11 @@ class PhysicsWorld:
         up to COMPOUND_MAX (PyBullet's limit per shape array)."""
         inst = self.world.scenery((key[0], key[1]))
         if not inst:
-            return []
+            return
         xmin, ymin, xmax, ymax = self.world.tile_bounds(key)
         items = [s for s in inst if xmin <= s["x"] < xmax and ymin <= s["y"] < ymax and s["kind"] in self._prefabs]
         if not items:
-            return []
+            return
         c = self.client
         ox, oy = (xmin + xmax) / 2.0, (ymin + ymax) / 2.0   # bodies' origin: the tile's centre
 
@@ -448,15 +514,21 @@ class PhysicsWorld:
             return ([s["x"] - ox + cy * off[0] - sy * off[1], s["y"] - oy + sy * off[0] + cy * off[1], s["z"] + off[2]],
                     [0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
 
-        bodies = []
-        cs = self._shape_pool.get(("scenery-mesh", key))
-        if cs is None:
-            V, F = _colliders_mesh([self._prefabs[s["kind"]][0] for s in items],
-                                   [frame(s, self._prefabs[s["kind"]][0][4]) for s in items])
-            cs = pb.createCollisionShape(pb.GEOM_MESH, vertices=V.tolist(), indices=F.ravel().tolist(),
-                                         flags=pb.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=c)
-            self._shape_pool[("scenery-mesh", key)] = cs
-        bodies.append(pb.createMultiBody(0, cs, -1, [ox, oy, 0.0], useMaximalCoordinates=True, physicsClientId=c))
+        # (runs of items by an upper bound of their faces: a prism 44, a box 12)
+        per = max(1, part_faces // 44) if part_faces else len(items)
+        runs = [items[n:n + per] for n in range(0, len(items), per)]
+        for n, run in enumerate(runs):
+            cs = self._shape_pool.get(("scenery-mesh", key, per, n))
+            if cs is None:
+                V, F = _colliders_mesh([self._prefabs[s["kind"]][0] for s in run],
+                                       [frame(s, self._prefabs[s["kind"]][0][4]) for s in run])
+                cs = pb.createCollisionShape(pb.GEOM_MESH, vertices=V.tolist(), indices=F.ravel().tolist(),
+                                             flags=pb.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=c)
+                self._shape_pool[("scenery-mesh", key, per, n)] = cs
+            body = pb.createMultiBody(0, cs, -1, [ox, oy, 0.0], useMaximalCoordinates=True, physicsClientId=c)
+            if n < len(runs) - 1:
+                yield [body]
+        bodies = [body]
         if self.visuals:
             by_kind: dict = {}
             for s in items:
@@ -477,7 +549,7 @@ class PhysicsWorld:
                     pb.changeVisualShape(b, -1, rgbaColor=PREFAB_COLOURS.get(kind, (0.6, 0.6, 0.6, 1)),
                                          physicsClientId=c)
                     bodies.append(b)
-        return bodies
+        yield bodies
 
     def _chunk_visual_ref(self, ij, delta):
         body, n = self._chunk_visuals.get(ij, (None, 0))

@@ -61,7 +61,7 @@ from ._atomic import atomic_path, check_writable, remove_stale_temps, write_text
 from .config import QUALITY, WorldConfig
 from .errors import BuildError, DataError, InputError
 from .frame import WorldFrame
-from .meshio import ObjBatch, tile_index, write_file
+from .meshio import COLLIDE_CLASSES, ObjBatch, tile_index, write_collision_mesh, write_file
 
 FORMAT_VERSION = 1
 TILE_M = 250.0
@@ -866,10 +866,10 @@ class _Buildings:
                 vi, F, groups = _gather(vnum, lay.faces, lay.vstart, lay.fstart, ks, [recs[n]["id"] for n in ks])
                 tiles.append((f"{int(tt) // nt}_{int(tt) % nt}", vi))
                 items.append((F, groups))
-            tiles = [(name, vi, text) for (name, vi), text in zip(tiles, obj_face_texts(items))]
+            tiles = [(name, vi, text, F) for (name, vi), text, (F, _) in zip(tiles, obj_face_texts(items), items)]
             if tmp is not None:
                 i, j = self.chunks[k]
-                for name, _, _ in tiles:
+                for name, _, _, _ in tiles:
                     (tmp / "chunks" / f"{i}_{j}" / "tiles" / name).mkdir(parents=True, exist_ok=True)
             glb = glb_template([r["id"] for r in recs], lay.faces, lay.vstart, lay.fstart, lay.material,
                                len(lay.vidx))
@@ -912,11 +912,13 @@ class _Buildings:
         if len(lay.mine):
             V = self.V[lay.vidx]
             batch = ObjBatch()
-            for name, vi, text in tiles_p:
+            for name, vi, text, F in tiles_p:
                 rel = f"{cdir}/tiles/{name}/building.obj"
                 batch.add_prepared(f"{tmp}/{rel}", V[vi], text)
                 tiles[name] = {"building": rel}
             batch.write()
+            for name, vi, _, F in tiles_p:          # (after the OBJs: their folders exist)
+                write_collision_mesh(f"{tmp}/{cdir}/tiles/{name}/building.obj", V[vi], F)
             # buildings.obj would repeat the building tiles: the world has the tiles and the GLB
             write_file(tmp / cdir / "buildings.glb", glb.render(V))
             files["buildings_glb"] = f"{cdir}/buildings.glb"
@@ -1017,6 +1019,7 @@ class _RoadTiles:
                 files.setdefault((a, b, kind), []).append((V, F, part, pieces, pf))
         batch = ObjBatch()
         tiles: dict = {}
+        binary = []
         for (a, b, kind), items in sorted(files.items()):
             V, F, groups, off, foff = [], [], [], 0, 0
             for v, f, part, pieces, pf in items:
@@ -1028,9 +1031,14 @@ class _RoadTiles:
                 off += len(v)
                 foff += len(f)
             rel = f"{cdir}/tiles/{a}_{b}/{kind}.obj"
-            batch.add(f"{tmp}/{rel}", np.vstack(V), np.vstack(F), groups)
+            V, F = np.vstack(V), np.vstack(F)
+            batch.add(f"{tmp}/{rel}", V, F, groups)
+            if kind in COLLIDE_CLASSES:
+                binary.append((f"{tmp}/{rel}", V, F))
             tiles.setdefault(f"{a}_{b}", {})[kind] = rel
         batch.write()
+        for path, V, F in binary:               # (after the OBJs: their folders exist)
+            write_collision_mesh(path, V, F)
         if col == 0:
             index = [{"id": part.ids[p], "element": part.elements[p], "class": kind,
                       "osm": [f"way/{w}" for w in part.osm[p]], "tile": f"{a}_{b}"}

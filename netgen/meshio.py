@@ -221,6 +221,23 @@ class ObjBatch:
         self.files = []
 
 
+#: the tile classes that collide in the physics world; each has, beside its OBJ, the same
+#: triangles in binary (:func:`write_collision_mesh`), which the physics loader cuts into small
+#: parts without parsing text
+COLLIDE_CLASSES = ("asphalt", "sidewalk", "rail", "building")
+
+
+def write_collision_mesh(obj_path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """``<class>.npz`` beside a tile's ``<class>.obj``: ``v`` (n, 3) float32 world metres and
+    ``f`` (m, 3) int32, the OBJ's faces in its order (0-based)."""
+    import io
+
+    buf = io.BytesIO()
+    np.savez(buf, v=np.asarray(vertices, dtype=np.float32).reshape(-1, 3),
+             f=np.asarray(faces, dtype=np.int32).reshape(-1, 3))
+    write_file(os.fspath(obj_path)[:-4] + ".npz", buf.getvalue())
+
+
 def write_file(path: Path, data: bytes) -> None:
     """Write `data` under a temporary name and rename it into place (no fsync; see above).
 

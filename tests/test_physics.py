@@ -5,7 +5,7 @@ import numpy as np
 import pybullet as pb
 import pytest
 
-from cosim.physics import PhysicsWorld
+from cosim.physics import COLLIDE, PART_FACES, PhysicsWorld
 from cosim.world import World
 from netgen.build import build_world
 from netgen.config import WorldConfig
@@ -145,8 +145,9 @@ def test_tile_loading_is_paced_by_how_near_the_missing_tiles_are(monaco_world):
 
 def test_tiles_load_a_part_at_a_time_within_the_budget(monaco_world):
     """With a budget smaller than a tile, ``update`` makes one part of a tile per call (the
-    terrain, each mesh class, the scenery); a tile counts as loaded, and ``covered``, only
-    once all its parts are in, and it ends with the same bodies as a tile loaded at once."""
+    terrain, each mesh class PART_FACES faces at a time, the scenery); a tile counts as loaded,
+    and ``covered``, only once all its parts are in, and it ends with the same bodies as a tile
+    loaded at once."""
     w = monaco_world
     whole = PhysicsWorld(w).setup()
     part = PhysicsWorld(w).setup()
@@ -155,7 +156,9 @@ def test_tiles_load_a_part_at_a_time_within_the_budget(monaco_world):
         xmin, ymin, xmax, ymax = w.tile_bounds(key)
         kx, ky = (xmin + xmax) / 2, (ymin + ymax) / 2          # (a disc inside that one tile)
         kinds_whole = whole.load_tile(key).kinds
-        n_parts = 1 + sum(1 for kind in w.tile_files(key) if kind in ("asphalt", "sidewalk", "building", "rail")) + 1
+        n_parts = 2 + sum(-(-len(np.load(f.with_suffix(".npz"))["f"]) // PART_FACES)
+                          for kind, f in w.tile_files(key).items() if kind in COLLIDE)
+        assert n_parts > 2 + sum(1 for kind in w.tile_files(key) if kind in COLLIDE)     # (some class in parts)
         calls = 0
         while key not in part.tiles:
             r = part.update(kx, ky, 10.0, budget_ms=0.0)    # one part per call
@@ -166,21 +169,25 @@ def test_tiles_load_a_part_at_a_time_within_the_budget(monaco_world):
         assert calls >= n_parts - 1 and part.covered(kx, ky, 5.0)
         tb = part.tiles[key]
         assert tb.kinds == kinds_whole and len(tb.bodies) == len(whole.tiles[key].bodies)
-        # a stale tile (its chunk rebuilt: ``refresh``) is replaced a part at a time, each new
-        # part taking the place of the old one of its kind: never a hole, never doubled
-        n_bodies = pb.getNumBodies(physicsClientId=part.client)
+        # a stale tile (its chunk rebuilt: ``refresh``) is replaced a class at a time, each new
+        # class whole taking the place of the old one in the same call: never a hole, never
+        # doubled
         assert part.refresh([(key[0], key[1])]) == 1
         old, calls = part.tiles[key], 0
         while part.tiles[key] is old:
             part.update(kx, ky, 10.0, budget_ms=0.0)
             calls += 1
             assert key in part.tiles and part.covered(kx, ky, 5.0)
-            assert pb.getNumBodies(physicsClientId=part.client) == n_bodies
+            job = part._loading.get(key)
+            if job is not None:
+                for kind in set(old.kinds):
+                    live_old = any(b is not None for b, k in zip(old.bodies, old.kinds) if k == kind)
+                    assert live_old != (kind in job[0].kinds), kind
             assert calls <= 50
-        assert calls >= n_parts - 1 and not part._stale and not part._loading
+        assert not part._stale and not part._loading
         new = part.tiles[key]
-        assert new.kinds == kinds_whole and all(b is None for b in old.bodies)
-        assert all(b is not None for b in new.bodies) and len(new.bodies) == len(tb.bodies)
+        assert set(new.kinds) == set(kinds_whole) and all(b is None for b in old.bodies)
+        assert all(b is not None for b in new.bodies)
         # what stands on the tile still stands on the ground
         hit = pb.rayTest([kx, ky, 1000.0], [kx, ky, -1000.0], physicsClientId=part.client)[0]
         assert hit[0] in new.bodies
@@ -196,3 +203,50 @@ def test_tiles_load_a_part_at_a_time_within_the_budget(monaco_world):
     finally:
         whole.teardown()
         part.teardown()
+
+
+def test_a_class_in_parts_is_the_same_surface_as_its_obj(monaco_world):
+    """Each colliding tile class has a binary copy (``<class>.npz``: the OBJ's vertices and
+    faces); loaded PART_FACES faces at a time, a body each, it is the surface the OBJ makes
+    (rays straight down over the tiles around the centre hit the same heights)."""
+    import trimesh
+
+    from cosim.physics import TileBodies
+
+    w = monaco_world
+    keys = [k for k in w.tiles_within(0.0, 0.0, 300.0) if w.is_built(k)]
+    n_files = 0
+    for k in keys:
+        for kind, f in w.tile_files(k).items():
+            if kind in COLLIDE:
+                d = np.load(f.with_suffix(".npz"))
+                m = trimesh.load(f, force="mesh", process=False)
+                assert d["f"].shape == m.faces.shape and np.array_equal(d["f"], m.faces)
+                assert np.abs(d["v"] - m.vertices).max() < 2e-3
+                n_files += 1
+    assert n_files >= 10
+    worlds = []
+    for part_faces in (PART_FACES, 0):
+        pw = PhysicsWorld(w).setup()
+        for k in keys:
+            tb = TileBodies()
+            for _ in pw._tile_parts(k, tb, part_faces):
+                pass
+            pw.tiles[k] = tb
+        worlds.append(pw)
+    try:
+        parts, whole = worlds
+        assert sum(len(t.bodies) for t in parts.tiles.values()) > sum(len(t.bodies) for t in whole.tiles.values())
+        rng = np.random.default_rng(0)
+        P = rng.uniform(-280.0, 280.0, (2000, 2))
+
+        def heights(pw):
+            hits = pb.rayTestBatch([[x, y, 2000.0] for x, y in P], [[x, y, -500.0] for x, y in P],
+                                   physicsClientId=pw.client)
+            return np.array([h[3][2] if h[0] >= 0 else np.nan for h in hits])
+
+        a, b = heights(parts), heights(whole)
+        assert np.array_equal(np.isnan(a), np.isnan(b)) and np.nanmax(np.abs(a - b)) < 2e-3
+    finally:
+        for pw in worlds:
+            pw.teardown()
