@@ -32,8 +32,10 @@ COLOURS = LAYER_COLOURS
 COLLIDE = set(COLLIDE_CLASSES)
 #: a colliding mesh class of a tile is made this many faces at a time, from its binary copy
 #: (``<class>.npz``): Bullet builds a triangle mesh's tree at about 1.2 µs a face, and a whole
-#: class of a city tile (3,000-5,000 faces) took a frame 3-6 ms over its median of 2
-PART_FACES = 600
+#: class of a city tile (3,000-5,000 faces) took a frame 3-6 ms over its median of 2. (600 made
+#: 0.5-1 ms parts, but three times the bodies, which cost every step and lidar scan: Helsinki's
+#: frame median 1.9 -> 2.1 ms, the car's physics 0.42 -> 0.60 ms; 2,000: 0.46 ms)
+PART_FACES = 2000
 COMPOUND_MAX = 16   # children per createCollisionShapeArray / createVisualShapeArray (PyBullet's limit)
 PREFAB_COLOURS = {"tree": (0.20, 0.45, 0.18, 1), "street_lamp": (0.35, 0.36, 0.38, 1),
                   "traffic_signal": (0.15, 0.15, 0.15, 1), "stop_sign": (0.80, 0.10, 0.10, 1),
