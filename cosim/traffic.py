@@ -138,6 +138,14 @@ def _boxes_overlap(a, b, margin: float = 0.0) -> bool:
     return True
 
 
+def _cannot_stop(gap: float, closing: float) -> bool:
+    """Whether a vehicle ``gap`` m behind another that appears at once, closing on it at
+    ``closing`` m/s, cannot stop before it at a normal deceleration (EGO_INSERT_DECEL, 1 m to
+    spare): SUMO inserts its own vehicles only where the follower can brake, and the ego and
+    the vehicles carried across a swap appear without that check."""
+    return gap < closing * closing / (2 * EGO_INSERT_DECEL) + 1.0
+
+
 def _polyline_distance(P, x: float, y: float) -> float:
     """Distance from (x, y) to the polyline `P` (n >= 2 points)."""
     _, _, _, ex, ey, _ = _onto_segments(P[:-1], np.diff(P, axis=0), x, y)
@@ -1445,8 +1453,7 @@ class SumoTraffic(Component):
                 v = s.vehicle.getSpeed(fid)
             except (self._exc, ValueError):
                 continue
-            closing = max(0.0, v - k.speed)
-            if gap < closing * closing / (2 * EGO_INSERT_DECEL) + 1.0:
+            if _cannot_stop(gap, max(0.0, v - k.speed)):
                 try:
                     s.vehicle.remove(fid)
                     n += 1
@@ -1580,7 +1587,7 @@ class SumoTraffic(Component):
                 gap = -lon - ego[3] / 2 - snap.length[k] / 2          # its front to the ego's rear
                 v = float(snap.speed[k])
                 closing = max(0.0, v - (self._ego_pending_speed or 0.0))    # (at a swap the ego moves)
-                if (0.0 <= gap < closing * closing / (2 * EGO_INSERT_DECEL) + 1.0
+                if (gap >= 0.0 and _cannot_stop(gap, closing)
                         and abs(lat) < (ego[4] + snap.width[k]) / 2 and math.cos(snap.yaw[k] - yaw) > 0.5):
                     why = f"came up behind the ego at {v:.1f} m/s, {gap:.1f} m away, as it went in"
             if why is None:

@@ -669,9 +669,9 @@ def _deck_clearance(RP, idx, own_e, hw, under_e, higher, lane_edge, onto_profile
     return np.where(np.isfinite(top), top, np.nan)
 
 
-def _bridge_decks(edges, ref_e, rg, rs, rtot, rz) -> np.ndarray:
-    """Bridges (OSM ``bridge=*``) as decks (``rz`` in place); returns the mask of the profiles
-    that are a deck.
+def _bridge_decks(edges, ref_e, rg, rs, rtot, rz, deck) -> None:
+    """Bridges (OSM ``bridge=*``; ``deck``: the mask of the profiles that are one) as decks
+    (``rz`` in place).
 
     A profile sampled from the ground took a bridge down into what it spans: Portland's
     bridges over the Willamette and the I-405 cutting dipped up to 20 m, and a car on an
@@ -686,9 +686,8 @@ def _bridge_decks(edges, ref_e, rg, rs, rtot, rz) -> np.ndarray:
     from scipy.sparse.linalg import spsolve
 
     n = len(ref_e)
-    deck = np.array([bool(getattr(edges[int(e)], "bridge", False)) for e in ref_e], dtype=bool)
     if not deck.any():
-        return deck
+        return
     first = np.r_[0, np.nonzero(rg[1:] != rg[:-1])[0] + 1]
     last = np.r_[first[1:] - 1, len(rg) - 1]
     num: dict = {}
@@ -737,10 +736,9 @@ def _bridge_decks(edges, ref_e, rg, rs, rtot, rz) -> np.ndarray:
     pd = deck[rg]
     z0, z1 = h[fn][rg], h[tn][rg]
     rz[pd] = (z0 + u * (z1 - z0))[pd]
-    return deck
 
 
-def _raise_decks(edges, ref_e, rg, rs, rz, deck, clearance) -> int:
+def _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, clearance) -> None:
     """Lowest OSM layer first, where a road passes under a deck (:func:`_bridge_decks`;
     ``clearance(points, their edges, under-edge mask)``: the heights needed there,
     :func:`_deck_clearance`; a deck of a lower layer counts as a road), the deck rises to clear
@@ -748,20 +746,16 @@ def _raise_decks(edges, ref_e, rg, rs, rz, deck, clearance) -> int:
     rises at :data:`DECK_MAX_GRADE` at most (a short bridge over a road stays at its ends'
     height, and the road under it crosses it there, conformed to it as an untagged bridge is:
     reaching the clearance would take approaches OSM does not tag as the bridge). After the
-    junction planes, so that the roads under it have their heights. Returns how many profile
-    points rose."""
+    junction planes, so that the roads under it have their heights. ``deck``: per profile,
+    ``edge_deck``: per edge."""
     pd = deck[rg]
-    ne = max(len(edges), 1)
-    before = rz.copy()
     layer_e = np.array([e.layer for e in edges], dtype=np.int64)
-    deck_e = np.zeros(ne, dtype=bool)
-    deck_e[ref_e[deck]] = True
     layer = layer_e[ref_e]
     for L in np.unique(layer[deck]):
         idx = np.flatnonzero(pd & (layer[rg] == L))
-        need = clearance(idx, ref_e[rg[idx]], ~deck_e | (layer_e < L))
+        need = clearance(idx, ref_e[rg[idx]], ~edge_deck | (layer_e < L))
         for g in np.unique(rg[idx[np.isfinite(need)]]):
-            i = np.flatnonzero(rg == g)
+            i = np.arange(np.searchsorted(rg, g), np.searchsorted(rg, g, side="right"))     # (its points)
             # (from its ends, which stay, at DECK_MAX_GRADE at most: where a deck cannot rise
             # enough over every road under it, it stays, and they cross at its height, conformed)
             cap = np.minimum(rz[i[0]] + DECK_MAX_GRADE * rs[i], rz[i[-1]] + DECK_MAX_GRADE * (rs[i[-1]] - rs[i]))
@@ -771,7 +765,6 @@ def _raise_decks(edges, ref_e, rg, rs, rz, deck, clearance) -> int:
                 continue        # (partly raised, it would stand lower than a car over a road)
             env = np.max(nc[None, :] - DECK_GRADE * np.abs(rs[i][:, None] - sc[None, :]), axis=1)
             rz[i] = np.maximum(rz[i], np.minimum(env, cap))
-    return int(np.sum(rz > before + 1e-6))
 
 
 def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, junctions=None,
@@ -1263,7 +1256,8 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
 
     # bridges' decks: straight between where they meet the ground, and clear of the roads under them
     edge_deck = higher[8]
-    deck = _bridge_decks(edges, ref_e, rg, rs, rtot, rz)      # (per profile: a bridge's deck)
+    deck = edge_deck[ref_e]                                     # (per profile: a bridge's deck)
+    _bridge_decks(edges, ref_e, rg, rs, rtot, rz, deck)
 
     # (roads with vehicle lanes: a footway's lanes on a road are left out, as sidewalks are)
     vehicle_edge = np.bincount(lane_edge[higher[0]], minlength=len(edges)) > 0
@@ -1278,7 +1272,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
 
     conformed = conform()
     if deck.any():
-        _raise_decks(edges, ref_e, rg, rs, rz, deck, lambda idx, own_e, under_e: _deck_clearance(
+        _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, lambda idx, own_e, under_e: _deck_clearance(
             RP, idx, own_e, edge_hw[own_e], under_e, higher, lane_edge, onto_profile))
 
     # 2. lane centrelines, resampled, with heights from their edge's profile
