@@ -919,24 +919,14 @@ def _bridge_lane_heights(out: Path, w: dict):
     """Per lane of a bridge (OSM bridge=*) in the world's asphalt tiles: (lane, arc lengths
     along it, surface heights there), the heights read back from the meshes."""
     import shapely
-    import trimesh
-
-    from cosim.world import World
 
     net = read_net(out / w["net_file"], internal=False)
     lanes = {ln.id: ln for e in net.edges.values() if e.bridge for ln in e.lanes}
-    world = World(out)
     got = {}
-    for c in world.chunks.values():
-        for tile in c.get("tiles", {}).values():
-            if "asphalt" not in tile:
-                continue
-            scene = trimesh.load(c["_base"] / tile["asphalt"], group_material=False, split_groups=True,
-                                 process=False, force="scene")
-            for name, g in scene.geometry.items():
-                lid = name.split("/", 1)[-1]
-                if name.startswith("lane/") and lid in lanes:
-                    got.setdefault(lid, []).append(g.vertices)
+    for name, g in _tile_meshes(out, "asphalt", "lane/"):
+        lid = name.split("/", 1)[-1]
+        if lid in lanes:
+            got.setdefault(lid, []).append(g.vertices)
     out_rows = []
     for lid, vs in got.items():
         V = np.vstack(vs)
@@ -978,9 +968,7 @@ def _check_bridge_decks(out: Path, w: dict, dem_path: Path):
 
     from netgen.roads import DECK_THICKNESS_M
 
-    under = [g for c in world.chunks.values() for t in c.get("tiles", {}).values() if "deck" in t
-             for name, g in trimesh.load(c["_base"] / t["deck"], group_material=False, split_groups=True,
-                                         process=False, force="scene").geometry.items() if name.startswith("deck/")]
+    under = [g for _, g in _tile_meshes(out, "deck", "deck/")]
     assert len(under) >= 10, len(under)
     U = trimesh.util.concatenate(under)
     assert (U.face_normals[:, 2] < -0.9).all()
