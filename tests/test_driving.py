@@ -779,3 +779,59 @@ def test_routes_go_around_tunnels_and_turns_the_car_cannot_make(monaco):
         assert lane.rsplit("_", 1)[0] not in tunnels and dist > 0.0
     finally:
         sim.teardown()
+
+
+def test_a_car_standing_inside_a_turn_beside_the_corridor_stops_the_car_before_its_sweep_touches_it(helsinki):
+    """In a turn tighter than the car follows, pure pursuit cuts the corner: a vehicle
+    standing inside the turn, in a lane of its own beside the path, is in the car's way though
+    a car exactly on the path would pass it (Kouvola, seed 3: the car brushed a queued car's
+    corner at 2.9 m/s). The corridor check does not see it; the car's sweep (its footprint
+    rolled along where its steering takes it) does; moved 2 m further from the path, not."""
+    import types
+
+    from cosim.autopilot import SWEEP_MARGIN_M
+    from cosim.traffic import ActorsSnapshot
+
+    sim = start_sim(helsinki, start=HEL_MID, goal=(60.170763, 24.948623))     # a right turn 420 m on
+    try:
+        ap, path = sim.driver, sim.path
+        st = sim.vehicle.state()
+        s_car = s_of(sim, st.x, st.y)[0]
+        # the first sharp turn ahead: the heading changes by > 60 degrees within 15 m
+        s0 = next(float(u) for u in np.arange(s_car + 10.0, path.length - 20.0, 0.5)
+                  if abs(math.remainder(path.heading_at(u + 15.0) - path.heading_at(u), 2 * math.pi))
+                  > math.radians(60))
+        turn = math.remainder(path.heading_at(s0 + 15.0) - path.heading_at(s0), 2 * math.pi)
+        side = 1.0 if turn > 0 else -1.0                 # + = a left turn: its inside is to the left
+        # the apex: where the heading turns fastest
+        s_apex = max(np.arange(s0, s0 + 15.0, 0.5), key=lambda u: abs(math.remainder(
+            path.heading_at(u + 2.5) - path.heading_at(u - 2.5), 2 * math.pi)))
+        s_e = float(s_apex) - 7.0                        # the car 7 m before the apex at 3 m/s
+        ex, ey = path.point_at(s_e)
+        car = types.SimpleNamespace(x=float(ex), y=float(ey), yaw=path.heading_at(s_e), speed=3.0, steer=0.0)
+        one = lambda v: np.array([v])                    # noqa: E731
+
+        def standing(offset: float):
+            h = path.heading_at(float(s_apex))
+            px, py = path.point_at(float(s_apex))
+            x, y = px - side * offset * math.sin(h), py + side * offset * math.cos(h)
+            return ActorsSnapshot(0.0, np.array(["q1"], dtype=object), np.array(["passenger"], dtype=object),
+                                  one(x), one(y), one(h), one(4.5), one(1.8), one(1.5), one(0.0), one(0.0),
+                                  np.array(["x_0"], dtype=object))
+
+        # offsets of the standing car's centre from the path where a car exactly on the path
+        # would pass it with more than the sweep's margin: the nearest the sweep touches
+        found = None
+        for offset in np.arange(ap.width / 2.0 + 0.9 + SWEEP_MARGIN_M + 0.05, 4.01, 0.05):
+            snap = standing(float(offset))
+            assert ap._actors_on_path(snap, car, s_e, path) is None       # not in the corridor
+            hit = ap._sweep(car, path, s_e, snap, ap.pp)
+            if hit is None:
+                break
+            found = (float(offset), hit)
+        assert found is not None, "the sweep does not reach beyond a car exactly on the path"
+        offset, (dist, actor, kind) = found
+        assert actor == "q1" and kind == "vehicle" and 0.0 <= dist <= 7.0 + 4.5
+        assert ap._sweep(car, path, s_e, standing(offset + 2.0), ap.pp) is None
+    finally:
+        sim.teardown()
