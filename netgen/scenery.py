@@ -15,7 +15,7 @@ row) and ``way/123#ix_iy`` (a wood's tree in cell ix, iy of the world-aligned gr
   multiples of its cell and the jitter a hash of (seed, cell), so a tree does not depend on
   which chunks are built together, and overlapping woods do not double up;
 * trees and benches inside a building footprint (``building_area``) or on the carriageway
-  (``road_area``) are dropped; street lamps, traffic signals and signs are roadside poles: one
+  (``road_area``; their colliders, turned by their yaw, reaching into it) are dropped; street lamps, traffic signals and signs are roadside poles: one
   that is on the carriageway is moved to the nearest point 0.5 m beyond its edge (at most
   ``max_move_m``, else dropped); a pole inside a building is dropped. Everything is counted.
 * yaw: trees and benches get a deterministic pseudo-random yaw; signs and signals face the
@@ -430,6 +430,31 @@ def _near(road: PolygonSet, x, y, r: float) -> np.ndarray:
     return out
 
 
+def _collider_on(road: PolygonSet, kinds, x, y, yaw, scale) -> np.ndarray:
+    """Whether each prefab's collider (``prefabs.json``: a cylinder by its rim, a box by its
+    corners and edge midpoints, scaled, turned by ``yaw``) reaches into the union."""
+    from models import prefab_dir
+
+    cols = {k: v["collision"] for k, v in json.loads((prefab_dir() / "prefabs.json").read_text())["prefabs"].items()}
+    x, y, yaw, scale = (np.asarray(a, float) for a in (x, y, yaw, scale))
+    kinds = np.asarray(kinds, dtype=object)
+    out = np.zeros(len(x), dtype=bool)
+    for kind in set(kinds.tolist()):
+        sel = np.flatnonzero(kinds == kind)
+        col = cols[kind]
+        ox, oy = float(col.get("offset", (0, 0, 0))[0]), float(col.get("offset", (0, 0, 0))[1])
+        if col["type"] == "box":
+            hx, hy = float(col["half_extents"][0]), float(col["half_extents"][1])
+            pts = [(ox + a * hx, oy + b * hy) for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b]
+        else:
+            r = float(col["radius"])
+            pts = [(ox + r * math.cos(a), oy + r * math.sin(a)) for a in np.arange(8) * (math.pi / 4)]
+        c, sn, k = np.cos(yaw[sel]), np.sin(yaw[sel]), scale[sel]
+        for px, py in pts:
+            out[sel] |= road.covers_xy(x[sel] + k * (px * c - py * sn), y[sel] + k * (px * sn + py * c))
+    return out
+
+
 def _radial_exit(x, y, road: PolygonSet, bld: PolygonSet, max_move_m: float, ndir: int = 32,
                  step: float = 0.25):
     """For each point, the nearest point 0.5 m beyond the first exit from the road along one of
@@ -590,6 +615,12 @@ def place_scenery(plan: SceneryPlan, road_area) -> PlacedScenery:
     in_bld = plan.in_bld
     status[in_bld] = "dropped_building"
     on_road = road.covers_xy(x, y) & ~in_bld
+    # a tree or a bench whose collider reaches the carriageway is on it too (a Lauf bench mapped
+    # at the kerb, turned by its yaw, stood half a metre into a lane and stopped the car there)
+    drop = ~move_policy & ~in_bld & ~on_road
+    if drop.any():
+        on_road[drop] = _collider_on(road, [SOURCES[s][0] for s in plan.src[drop]], x[drop], y[drop],
+                                     yaw[drop], plan.scale[drop])
     # a pole whose foot reaches the carriageway is on it too (OSM puts traffic signals on the
     # road's own node: at a lane's end the point sits on the edge of both the lane strip and
     # the junction, where the point test can fall either way, and the pole stood in the lane)

@@ -187,6 +187,35 @@ def test_nothing_in_buildings_or_on_the_carriageway(name):
 
 
 @pytest.mark.parametrize("name", ["helsinki", "monaco"])
+def test_tree_trunks_and_benches_stay_off_the_carriageway(name):
+    """Not only the mapped point: the collider a car could hit (prefabs.json's trunk cylinder,
+    the bench's box turned by its yaw) does not reach into the carriageway (a Lauf bench mapped
+    at the kerb stood half a metre into a lane and stopped the car for good)."""
+    from models import prefab_dir
+
+    path, frame, feats, road, bld, cb, res = world(name)
+    cols = {k: v["collision"] for k, v in json.loads((prefab_dir() / "prefabs.json").read_text())["prefabs"].items()}
+    shapes = []
+    for i in instances(res):
+        if i["kind"] not in ("tree", "bench"):
+            continue
+        col, k = cols[i["kind"]], i["scale"]
+        c, s = math.cos(i["yaw"]), math.sin(i["yaw"])
+        ox, oy = col["offset"][0] * k, col["offset"][1] * k
+        cx, cy = i["x"] + ox * c - oy * s, i["y"] + ox * s + oy * c
+        if col["type"] == "box":
+            hx, hy = col["half_extents"][0] * k, col["half_extents"][1] * k
+            shapes.append(shapely.Polygon([(cx + a * hx * c - b * hy * s, cy + a * hx * s + b * hy * c)
+                                           for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]))
+        else:
+            shapes.append(shapely.Point(cx, cy).buffer(col["radius"] * k, 16))
+    assert len(shapes) > 300
+    inside = shapely.area(shapely.intersection(np.array(shapes, dtype=object), road))
+    # (the check samples a collider's rim and corners: a road's own corner may poke in between)
+    assert inside.max() < 0.01, (inside.max(), int((inside > 0.01).sum()))
+
+
+@pytest.mark.parametrize("name", ["helsinki", "monaco"])
 def test_poles_are_moved_just_off_the_carriageway(name):
     path, frame, feats, road, bld, cb, res = world(name)
     ext = (cb[0][0], cb[0][1], cb[-1][2], cb[-1][3])
