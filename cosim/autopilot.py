@@ -518,13 +518,26 @@ class Autopilot:
         s0, s1 = s_here, min(path.length, s_here + SENSE_RANGE_M)
         s, off = path.project_many(actors.x[near], actors.y[near], s0, s1 + 5.0)
         half_ego = self.width / 2.0 + 0.3
+        # the tests below that leave an actor out for where it is (beside or behind the ego,
+        # too far to the side), for all at once; the loop repeats them for those kept
+        ok = np.isfinite(s) & (s < s1 + 4.0)
+        if not ok.any():
+            return None
+        near, s, off = near[ok], s[ok], off[ok]
+        idx = np.clip(np.searchsorted(path.s, s, side="right") - 1, 0, len(path.s) - 1)
+        dyaw = actors.yaw[near] - path.heading[idx]
+        c, sn = np.abs(np.cos(dyaw)), np.abs(np.sin(dyaw))
+        L, W = actors.length[near], actors.width[near]
+        person = actors.kind[near] == "person"
+        reach = np.where(person | (c < 0.7), np.maximum(12.0, 4.0 * np.abs(actors.speed[near]) * sn), 12.0)
+        ok = (s - s_here - self.front - (0.5 * L * c + 0.5 * W * sn) >= -self.front - 1e-9) & \
+            (np.abs(off) <= half_ego + 0.5 * W * c + 0.5 * L * sn + reach + 1e-9)
+        near, s, off = near[ok], s[ok], off[ok]
         v_ego = max(st.speed, 0.5)
         foes = None
         tr = getattr(self.sim, "traffic", None)
         best = None
         for j, i in enumerate(near):
-            if not np.isfinite(s[j]) or s[j] >= s1 + 4.0:
-                continue
             person = actors.kind[i] == "person"
             dyaw = float(actors.yaw[i]) - path.heading_at(float(s[j]))
             L, W = float(actors.length[i]), float(actors.width[i])

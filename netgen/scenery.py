@@ -18,7 +18,8 @@ row) and ``way/123#ix_iy`` (a wood's tree in cell ix, iy of the world-aligned gr
   (``road_area``; their colliders, turned by their yaw, reaching into it) are dropped; street lamps, traffic signals and signs are roadside poles: one
   that is on the carriageway is moved to the nearest point 0.5 m beyond its edge (at most
   ``max_move_m``, else dropped); a pole inside a building is dropped. Everything is counted.
-* yaw: trees and benches get a deterministic pseudo-random yaw; signs and signals face the
+* yaw: trees and benches get a deterministic pseudo-random yaw (a bench within reach of the
+  carriageway stands along it, facing it, instead); signs and signals face the
   oncoming traffic when the node's road direction is known (``direction=forward`` -> traffic
   along the way, the face looks back along it; ``backward`` the other way; a number is the
   compass bearing, clockwise from north, the face looks to; right-hand traffic is not
@@ -79,6 +80,7 @@ TREE_ROW_SPACING_M = 8.0
 WOOD_M2_PER_TREE = 150.0
 OFF_ROAD_M = 0.5
 POLE_FOOT_M = 0.3           # a pole this close to the carriageway is moved off it (OFF_ROAD_M beyond)
+BENCH_REACH_M = 0.95        # a bench this close to the carriageway is turned along it (its box's half diagonal)
 MAX_MOVE_M = 15.0
 AREA_CELL_M = 10.0
 MAX_AREA_CELLS = 40000
@@ -616,8 +618,17 @@ def place_scenery(plan: SceneryPlan, road_area) -> PlacedScenery:
     status[in_bld] = "dropped_building"
     on_road = road.covers_xy(x, y) & ~in_bld
     # a tree or a bench whose collider reaches the carriageway is on it too (a Lauf bench mapped
-    # at the kerb, turned by its yaw, stood half a metre into a lane and stopped the car there)
+    # at the kerb, turned by its yaw, stood half a metre into a lane and stopped the car there);
+    # a bench that could reach it stands along it first, facing it, as benches at a kerb do
     drop = ~move_policy & ~in_bld & ~on_road
+    bench = np.flatnonzero(drop & (plan.src == "bench"))
+    if len(bench) and len(road):
+        near = _near(road, x[bench], y[bench], BENCH_REACH_M * float(np.max(plan.scale[bench])))
+        b = bench[near]
+        if len(b):
+            q = road.nearest_edge(x[b], y[b])
+            good = np.isfinite(q[:, 0])
+            yaw[b[good]] = np.mod(np.arctan2(q[good, 1] - y[b[good]], q[good, 0] - x[b[good]]), 2 * math.pi)
     if drop.any():
         on_road[drop] = _collider_on(road, [SOURCES[s][0] for s in plan.src[drop]], x[drop], y[drop],
                                      yaw[drop], plan.scale[drop])
