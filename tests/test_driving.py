@@ -835,3 +835,48 @@ def test_a_car_standing_inside_a_turn_beside_the_corridor_stops_the_car_before_i
         assert ap._sweep(car, path, s_e, standing(offset + 2.0), ap.pp) is None
     finally:
         sim.teardown()
+
+
+def test_a_car_already_on_a_crossing_junction_lane_goes_on_when_it_clears_it_in_time(helsinki):
+    """A junction lane that runs over the path (two junctions drawn into each other) is a
+    stretch the car stops before while a vehicle on it would meet the car there. When the car
+    is in the stretch already, it stops only if the vehicle comes before the car is out of it
+    (a Monaco car braked from 8.2 to 2.5 m/s inside such a stretch for a car 11 m off to the
+    side at 3.3 m/s); a vehicle standing in the stretch still stops it."""
+    from cosim.driving import _resample
+    from cosim.traffic import ActorsSnapshot
+
+    sim = start_sim(helsinki, start=HEL_MID, goal=HEL_GOAL)
+    try:
+        ap, path = sim.driver, sim.path
+        st = sim.vehicle.state()
+        s_e = s_of(sim, st.x, st.y)[0] + 20.0
+        s_c = s_e + 1.0                              # the lane crosses the path under the car's bonnet
+        h = path.heading_at(s_c)
+        cx, cy = path.point_at(s_c)
+        nx, ny = -math.sin(h), math.cos(h)           # the lane runs from the path's left across it
+        P = _resample(np.array([[cx + 40.0 * nx, cy + 40.0 * ny], [cx - 40.0 * nx, cy - 40.0 * ny]]), 1.0)
+        arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(P, axis=0).T))])
+        lane = ":x_0_0"
+        ap._lane_shapes[lane] = (P, arc)
+        one = lambda v: np.array([v])                # noqa: E731
+
+        def vehicle(before: float, speed: float):
+            """A car on the lane, its front `before` m before the path's centreline."""
+            fx, fy = cx + before * nx, cy + before * ny
+            x, y = fx - 2.25 * (-nx), fy - 2.25 * (-ny)          # its centre, 2.25 m behind its front
+            return ActorsSnapshot(0.0, np.array(["c1"], dtype=object), np.array(["passenger"], dtype=object),
+                                  one(x), one(y), one(math.atan2(-ny, -nx)), one(4.5), one(1.8), one(1.5),
+                                  one(speed), one(0.0), np.array([lane], dtype=object))
+
+        # far up the lane at 3 m/s: the car at 8 m/s is out of the stretch long before it comes
+        assert ap._lane_conflict(path, lane, vehicle(25.0, 3.0), 0, s_e, 8.0) is None
+        # about to enter the stretch: the car stops (in the stretch: gap 0)
+        lead = ap._lane_conflict(path, lane, vehicle(3.0, 6.0), 0, s_e, 8.0)
+        assert lead is not None and lead.actor == "c1" and lead.gap == 0.0
+        # standing on the path
+        assert ap._lane_conflict(path, lane, vehicle(-1.0, 0.0), 0, s_e, 8.0) is not None
+        # the car itself slow: the same far vehicle comes before it is out
+        assert ap._lane_conflict(path, lane, vehicle(25.0, 3.0), 0, s_e, 0.5) is not None
+    finally:
+        sim.teardown()
