@@ -115,7 +115,8 @@ class Lead:
     source: str                # "lidar", "actors", "sumo"
     actor: str = ""
     track_gap: float | None = None     # a vehicle crossing the path: the gap to its track (the
-    # gap above is to where the car stops, CROSS_LANE_MARGIN_M before it); None for others
+    # gap above is to where the car stops, CROSS_LANE_MARGIN_M before it); a person walking into
+    # the corridor from the side: the gap to it; None for others (near misses: _update_stats)
 
 
 @dataclass
@@ -650,7 +651,10 @@ class Autopilot:
                 # was in the near lane, and a truck in it hit the car)
                 gap -= CROSS_LANE_MARGIN_M
             else:
-                track_gap = None
+                # a person walking in from the side (not in the corridor yet): its track too,
+                # for the near-miss count (a Lauf person 4 m beside the path, stepping towards
+                # it, counted as a near miss at TTC 0.76 s as if it stood in the lane)
+                track_gap = max(0.0, gap) if person and not inside else None
             if best is None or gap < best.gap:
                 best = Lead(max(0.0, gap), lead_v, "person" if person else "vehicle", "actors", str(actors.ids[i]),
                             track_gap)
