@@ -243,6 +243,11 @@ class TrafficStats:
 EGO_INSERT_DECEL = 4.5     # m/s², a vehicle behind the ego as it goes into SUMO must stop at this (_clear_ego_footprint)
 SWAP_WARM_S = 1.0          # a new SUMO runs this long before actors are carried into it
 FOLLOWER_LOOK_M = 100.0     # how far behind a carried vehicle its follower is looked for at a swap
+# the ego's body reaching this far into a neighbouring lane makes that lane's follower (within
+# STRADDLE_LOOK_M) keep STRADDLE_GAP_M behind it (_straddle_yield)
+STRADDLE_M = 0.3
+STRADDLE_LOOK_M = 60.0
+STRADDLE_GAP_M = 2.0
 SWAP_ROOM_MARGIN_M = 20.0    # the new SUMO's own actors this far beyond the kept ones make room
 
 
@@ -329,6 +334,8 @@ class SumoTraffic(Component):
         self._dims_cache: dict[str, tuple[float, float, float]] = {}
         self._vclass_cache: dict[str, tuple[str, float, float, float]] = {}
         self._held: dict[str, float] = {}  # pedestrians stopped for the ego: id -> their own pace
+        self._straddle_held: set = set()    # vehicles kept behind an ego that straddles their lane
+        self._lane_widths: dict = {}
         self._ego_ctx_res: dict | None = None  # this step's context results (_ego_context)
         self._moved_persons: dict = {}     # persons a swap placed by moveToXY: id -> (x, y, speed)
         self._ego_pose: tuple | None = None  # the centre and yaw last given to set_ego_pose
@@ -575,6 +582,8 @@ class SumoTraffic(Component):
             self._keep_ego_route()
         if self.persons_yield and (self._ego_in_sim or self._held):
             self._persons_yield()
+        if self._ego_in_sim or self._straddle_held:
+            self._straddle_yield()
         n_tele = int(r.get(tc.VAR_TELEPORT_STARTING_VEHICLES_NUMBER, 0))
         if n_tele:
             st.teleports += n_tele
@@ -661,6 +670,58 @@ class SumoTraffic(Component):
             except self._exc:
                 pass                                 # arrived or gone
         self._held = held
+
+    def _straddle_yield(self) -> None:
+        """SUMO's drivers see the ego only in the lane SUMO maps it to (without the sublane
+        model). While the ego's body reaches STRADDLE_M or more into a neighbouring lane (its
+        lane path blends from one lane to the next over an edge), the follower in that lane
+        keeps STRADDLE_GAP_M behind it (``setSpeed`` down to what stops it there at
+        EGO_INSERT_DECEL, released after): else, once ``moveToXY`` maps the ego over into that
+        lane mid-blend, it lands on a car beside it (Lauf, seeds 4 and 5: SUMO counted the car
+        coming up behind as a collision)."""
+        s = self._sim
+        held: set = set()
+        lane = ""
+        if self._ego_in_sim and not self._ego_off_network:
+            try:
+                lane = s.vehicle.getLaneID(EGO_ID)
+                lat = s.vehicle.getLateralLanePosition(EGO_ID)
+            except self._exc:
+                lane = ""
+        if lane and not lane.startswith(":"):
+            w = self._lane_widths.get(lane)
+            if w is None:
+                w = self._lane_widths[lane] = float(s.lane.getWidth(lane))
+            half = self._ego_spec["width"] / 2.0
+            sides = []
+            if lat + half > w / 2.0 + STRADDLE_M:
+                sides.append(s.vehicle.getLeftFollowers)
+            if lat - half < -w / 2.0 - STRADDLE_M:
+                sides.append(s.vehicle.getRightFollowers)
+            v_ego = self._ego_pending_speed or 0.0
+            for followers in sides:
+                try:
+                    found = followers(EGO_ID)
+                except self._exc:
+                    continue
+                for fid, gap in found:
+                    if not fid or gap > STRADDLE_LOOK_M:
+                        continue
+                    room = gap - STRADDLE_GAP_M
+                    v_ok = math.sqrt(v_ego * v_ego + 2.0 * EGO_INSERT_DECEL * room) if room > 0.0 \
+                        else max(0.0, v_ego - 2.0)         # beside it: fall back
+                    try:
+                        if fid in self._straddle_held or s.vehicle.getSpeed(fid) > v_ok:
+                            s.vehicle.setSpeed(fid, v_ok)
+                            held.add(fid)
+                    except self._exc:
+                        pass
+        for fid in self._straddle_held - held:
+            try:
+                s.vehicle.setSpeed(fid, -1)          # its own driving again
+            except self._exc:
+                pass                                 # arrived or gone
+        self._straddle_held = held
 
     # --- ego ----------------------------------------------------------------------------
     def add_ego(self, route_edges: Sequence[str] | None = None, from_edge: str | None = None,

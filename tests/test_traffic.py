@@ -894,3 +894,51 @@ def test_sumo_vehicles_where_the_ego_goes_in_are_removed(traffic, blocker_in):
     ids = set(s.vehicle.getIDList())
     assert "blocker" not in ids and {"ahead", EGO_ID} <= ids
     assert t.stats.collisions == 0
+
+
+@pytest.mark.parametrize("yield_", [True, False])
+def test_a_follower_in_the_lane_the_ego_straddles_into_keeps_behind_it(traffic, monkeypatch, yield_):
+    """Without the sublane model SUMO's drivers see the ego only in the lane it is mapped to.
+    The ego blending from one lane into the next (its lane path does over an edge) reaches into
+    the neighbouring lane for seconds; a car coming up there keeps 2 m behind it, so that when
+    SUMO maps the ego over into that lane it does not land on the car (Lauf, seeds 4 and 5:
+    SUMO counted a collision). Without that rule the same scenario is a collision."""
+    if not yield_:
+        monkeypatch.setattr(SumoTraffic, "_straddle_yield", lambda self: None)
+    t = traffic(seed=2)
+    s = t.sumo
+
+    def car(lane):
+        allowed = s.lane.getAllowed(lane)
+        return "passenger" in allowed if allowed else "passenger" not in s.lane.getDisallowed(lane)
+
+    edge, idx = next((e, i) for e in s.edge.getIDList() if not e.startswith(":")
+                     for i in range(s.edge.getLaneNumber(e) - 1)
+                     if car(f"{e}_{i}") and car(f"{e}_{i + 1}") and s.lane.getLength(f"{e}_{i}") > 100.0)
+    s.route.add("r_straddle", [edge])
+    s.vehicle.add("chaser", "r_straddle", typeID="DEFAULT_VEHTYPE", depart="now", departPos="10",
+                  departSpeed="10", departLane=str(idx + 1))
+    t.step()
+    t.add_ego([edge])
+
+    def pose(front_pos, left):
+        """The ego's centre and yaw: its front `front_pos` m along lane idx, `left` m to its left."""
+        x, y = s.simulation.convert2D(edge, front_pos, idx)
+        x2, y2 = s.simulation.convert2D(edge, front_pos + 1.0, idx)
+        yaw = math.atan2(y2 - y, x2 - x)
+        return x - left * math.sin(yaw) - 2.25 * math.cos(yaw), y + left * math.cos(yaw) - 2.25 * math.sin(yaw), yaw
+
+    front, slowest = 45.0, 99.0
+    for k in range(60):
+        # 1 m/s, 1.4 m left of its lane's centre (0.7 m into the next lane), then over into it
+        cx, cy, yaw = pose(front, 1.4 if k < 28 else 1.9)
+        t.set_ego_pose(cx, cy, yaw, 1.0)
+        t.step()
+        front += 0.1
+        slowest = min(slowest, s.vehicle.getSpeed("chaser"))
+    assert s.vehicle.getLaneID(EGO_ID) == f"{edge}_{idx + 1}"          # the ego went over
+    if yield_:
+        assert t.stats.collisions == 0
+        assert slowest < 3.0 and s.vehicle.getLanePosition("chaser") < s.vehicle.getLanePosition(EGO_ID) - 4.5
+    else:       # (the scenario is one where it matters)
+        assert t.stats.collisions >= 1
