@@ -385,8 +385,7 @@ class Autopilot:
         # SWEEP_GATE_RADIUS_M, the car stays on it (lateral error p95 0.15 m) and the corridor
         # covers its sweep: no roll
         if abs(self._lat) < SWEEP_GATE_M:
-            ld = min(pp.ld_max, max(pp.ld_min, pp.k_ld * v + pp.k_ld2 * v * v))
-            i0, i1 = max(0, self._k - 2), path.index_at(s_here + reach + ld) + 1
+            i0, i1 = max(0, self._k - 2), path.index_at(s_here + reach + pp.lookahead(v)) + 1
             if i1 <= i0 or float(np.abs(path.curvature_smooth[i0:i1]).max()) * SWEEP_GATE_RADIUS_M < 1.0:
                 return None
         dx, dy = actors.x - st.x, actors.y - st.y
@@ -519,45 +518,39 @@ class Autopilot:
         s0, s1 = s_here, min(path.length, s_here + SENSE_RANGE_M)
         s, off = path.project_many(actors.x[near], actors.y[near], s0, s1 + 5.0)
         half_ego = self.width / 2.0 + 0.3
-        # the tests below that leave an actor out for where it is (beside or behind the ego,
-        # too far to the side), for all at once; the loop repeats them for those kept
+        # where each actor is in the path's frame, for all at once: those beside or behind the
+        # ego, or too far to the side, are left out before the loop
         ok = np.isfinite(s) & (s < s1 + 4.0)
         if not ok.any():
             return None
         near, s, off = near[ok], s[ok], off[ok]
         idx = np.clip(np.searchsorted(path.s, s, side="right") - 1, 0, len(path.s) - 1)
         dyaw = actors.yaw[near] - path.heading[idx]
-        c, sn = np.abs(np.cos(dyaw)), np.abs(np.sin(dyaw))
+        cos_d, sin_d = np.cos(dyaw), np.sin(dyaw)
+        c, sn = np.abs(cos_d), np.abs(sin_d)
         L, W = actors.length[near], actors.width[near]
-        person = actors.kind[near] == "person"
-        reach = np.where(person | (c < 0.7), np.maximum(12.0, 4.0 * np.abs(actors.speed[near]) * sn), 12.0)
-        ok = (s - s_here - self.front - (0.5 * L * c + 0.5 * W * sn) >= -self.front - 1e-9) & \
-            (np.abs(off) <= half_ego + 0.5 * W * c + 0.5 * L * sn + reach + 1e-9)
-        near, s, off = near[ok], s[ok], off[ok]
+        persons = actors.kind[near] == "person"
+        speeds = actors.speed[near]
+        ext_lons = 0.5 * L * c + 0.5 * W * sn
+        gaps = s - s_here - self.front - ext_lons
+        hws = half_ego + 0.5 * W * c + 0.5 * L * sn
+        crossings = persons | (c < 0.7)
+        # (a crossing actor is watched from as far as it covers in 4 s sideways)
+        reaches = np.where(crossings, np.maximum(12.0, 4.0 * np.abs(speeds * sin_d)), 12.0)
+        keep = np.flatnonzero((gaps >= -self.front) & (np.abs(off) <= hws + reaches))
         v_ego = max(st.speed, 0.5)
         foes = None
         tr = getattr(self.sim, "traffic", None)
         best = None
-        for j, i in enumerate(near):
-            person = actors.kind[i] == "person"
-            dyaw = float(actors.yaw[i]) - path.heading_at(float(s[j]))
-            L, W = float(actors.length[i]), float(actors.width[i])
-            ext_lat = 0.5 * W * abs(math.cos(dyaw)) + 0.5 * L * abs(math.sin(dyaw))
-            ext_lon = 0.5 * L * abs(math.cos(dyaw)) + 0.5 * W * abs(math.sin(dyaw))
-            gap = float(s[j]) - s_here - self.front - ext_lon
-            if gap < -self.front:                     # beside or behind the ego
-                continue
-            hw = half_ego + ext_lat
-            sp = float(actors.speed[i])
-            v_along = sp * math.cos(dyaw)
-            v_lat = sp * math.sin(dyaw)               # + = towards the path's left
+        for j in keep.tolist():
+            i = near[j]
+            person, crossing = bool(persons[j]), bool(crossings[j])
+            ext_lon, gap, hw = float(ext_lons[j]), float(gaps[j]), float(hws[j])
+            sp = float(speeds[j])
+            v_along = sp * float(cos_d[j])
+            v_lat = sp * float(sin_d[j])              # + = towards the path's left
             o = float(off[j])
             inside = abs(o) <= hw
-            crossing = person or abs(math.cos(dyaw)) < 0.7
-            # (a crossing actor is watched from as far as it covers in 4 s sideways)
-            reach = max(12.0, 4.0 * abs(sp * math.sin(dyaw))) if crossing else 12.0
-            if abs(o) > hw + reach:
-                continue
             if not person and tr is not None:
                 # SUMO's lanes say which vehicles can meet the ego: those on the path's lanes
                 # (or beside them on the same edge: lane changes) and those on junction lanes

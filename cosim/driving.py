@@ -937,12 +937,16 @@ class PurePursuit:
         self.k_ld, self.ld_min, self.ld_max = k_ld, ld_min, ld_max
         self.rear = wheelbase / 2.0 if rear_axle is None else rear_axle   # centre -> rear axle
 
+    def lookahead(self, speed: float) -> float:
+        """The look-ahead distance (m) at ``speed``."""
+        return min(self.ld_max, max(self.ld_min, self.k_ld * abs(speed) + self.k_ld2 * speed * speed))
+
     def steer(self, path: LanePath, x, y, yaw, speed, s_here, velocity=None, yaw_rate: float = 0.0,
               tau: float | None = None) -> tuple[float, float]:
         c, s = math.cos(yaw), math.sin(yaw)
         rx, ry = x - self.rear * c, y - self.rear * s
         heading = yaw
-        ld = min(self.ld_max, max(self.ld_min, self.k_ld * abs(speed) + self.k_ld2 * speed * speed))
+        ld = self.lookahead(speed)
         # the look-ahead point: ld from the rear axle, measured along the path from its projection
         s_rear = s_here - self.rear
         if velocity is not None and speed > 1.0:

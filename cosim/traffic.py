@@ -684,8 +684,9 @@ class SumoTraffic(Component):
         lane = ""
         if self._ego_in_sim and not self._ego_off_network:
             try:
-                lane = s.vehicle.getLaneID(EGO_ID)
-                lat = s.vehicle.getLateralLanePosition(EGO_ID)
+                lane = self._ego_lane()
+                if lane and not lane.startswith(":"):
+                    lat = s.vehicle.getLateralLanePosition(EGO_ID)
             except self._exc:
                 lane = ""
         if lane and not lane.startswith(":"):
@@ -850,9 +851,10 @@ class SumoTraffic(Component):
         ego stays on it, and replaces it with the edge it is on when it leaves it)."""
         s = self._sim
         try:
-            road = s.vehicle.getRoadID(EGO_ID)
+            lane = self._ego_lane()
         except self._exc:
             return
+        road = lane.rsplit("_", 1)[0]
         if road == self._ego_route_road or not road or road.startswith(":"):
             return
         self._ego_route_road = road
@@ -960,6 +962,15 @@ class SumoTraffic(Component):
         if self._ego_ctx_res is None:
             self._ego_ctx_res = self._sim.vehicle.getContextSubscriptionResults(EGO_ID) or {}
         return self._ego_ctx_res
+
+    def _ego_lane(self) -> str:
+        """The ego's lane after this step ('' off the network): from its own entry in the
+        context subscription it anchors (no call), else asked."""
+        if self._ctx_anchor == EGO_ID:
+            e = self._ego_context().get(EGO_ID)
+            if e is not None and self._tc.VAR_LANE_ID in e:
+                return e[self._tc.VAR_LANE_ID]
+        return self._sim.vehicle.getLaneID(EGO_ID)
 
     def _unsubscribe_context(self):
         tc = self._tc
