@@ -81,6 +81,7 @@ NEAR_MISS_GAP_M = 2.0
 SENSE_RANGE_M = 80.0       # obstacles on the path are considered up to here
 CROSS_LANE_MARGIN_M = 3.5  # a crossing vehicle's road may have a lane nearer than its own
 LANE_CONFLICT_MARGIN_M = 0.5  # a junction lane over the path: clear of the two bodies by this
+OVER_PATH_M = 3.0            # a junction lane this near the path is looked at closer (_over)
 MERGE_WATCH_M = 2.5        # a vehicle in a lane the path changes into is followed from this far beside
 HARD_DECEL = 6.0           # m/s2: the car's firm braking (what "can still stop before it" means)
 # the car's own sweep (_sweep): its footprint, grown by SWEEP_MARGIN_M on every side, rolled
@@ -188,6 +189,12 @@ class Autopilot:
         self._internal_foes: dict = {}
         self._internal_foes_all: dict = {}
         self._lane_shapes: dict = {}      # junction lane -> (centreline points, arc lengths)
+        self._lane_vias: dict | None = None   # lane -> the junction lanes its links go through
+        self._vias_asked: set = set()     # lanes whose junction lanes' shapes were asked ahead
+        self._conflict_lanes: dict = {}   # lane -> _conflict_vias (per path)
+        self._over_path: dict = {}        # junction lane -> the path's stretch near it, or () (per path)
+        self._path_lanes: set = set()     # the lanes of the path
+        self._path_junctions: set = set()  # the junctions it goes through
         self._net_generation = getattr(getattr(sim, "traffic", None), "_generation", 0)
         self._near_miss_until = -1.0
         self._sweeping = False
@@ -207,7 +214,7 @@ class Autopilot:
             self._net_generation = gen
             self._incoming = None
             self._foes, self._internal_foes, self._internal_foes_all = {}, {}, {}
-            self._lane_shapes = {}
+            self._lane_shapes, self._lane_vias, self._vias_asked = {}, None, set()
             self._stop_state.clear()
             self._yellow.clear()
             self._path = None
@@ -298,6 +305,9 @@ class Autopilot:
 
     def _new_path(self, path):
         self._path = path
+        self._over_path, self._conflict_lanes = {}, {}
+        self._path_lanes = {ln for ln, _ in path.lane_of}
+        self._path_junctions = {junction_of(ln) for ln in self._path_lanes if ln.startswith(":")}
         self._s_goal = None
         sim = self.sim
         if sim.goal_xy is not None:
@@ -444,7 +454,7 @@ class Autopilot:
         if expect is None:
             return
         lane_p, edge_p = ("sumo", "lane"), ("sumo", "edge")
-        reads = [(("incoming_lanes",), ())]
+        reads = [(("incoming_lanes",), ()), (("via_lanes",), ())]
         far = s_here + SENSE_RANGE_M + EXPECT_AHEAD_M
         for lane in path.lanes_between(s_here - 5.0, far):
             if lane.startswith(":"):
@@ -455,6 +465,10 @@ class Autopilot:
                 if ln and not ln.startswith(":"):
                     e = ln.rsplit("_", 1)[0]
                     reads += [(edge_p + ("getToJunction",), (e,)), (edge_p + ("getFromJunction",), (e,))]
+                    if self._lane_vias is not None and ln not in self._vias_asked:
+                        self._vias_asked.add(ln)
+                        reads += [(lane_p + ("getShape",), (w,)) for w in self._lane_vias.get(ln, ())
+                                  if w not in self._lane_shapes]
                 elif ln and ln not in self._lane_shapes:
                     reads.append((lane_p + ("getShape",), (ln,)))
         front = s_here + self.front
@@ -537,12 +551,31 @@ class Autopilot:
         crossings = persons | (c < 0.7)
         # (a crossing actor is watched from as far as it covers in 4 s sideways)
         reaches = np.where(crossings, np.maximum(12.0, 4.0 * np.abs(speeds * sin_d)), 12.0)
-        keep = np.flatnonzero((gaps >= -self.front) & (np.abs(off) <= hws + reaches))
+        inside_mask = (gaps >= -self.front) & (np.abs(off) <= hws + reaches)
+        keep = np.flatnonzero(inside_mask).tolist()
         v_ego = max(st.speed, 0.5)
         foes = None
         tr = getattr(self.sim, "traffic", None)
+        lanes = getattr(actors, "lane", None)
+        extra = set()
+        if tr is not None and lanes is not None:
+            # vehicles on (or heading into) a junction lane that runs over the path ahead are
+            # timed along that lane wherever they are now, beside or behind the car too (Monaco,
+            # seed 6: a car came up from behind on the left, on a road into the next junction,
+            # whose lane across the car's road SUMO draws 25 m from the junction: it drove into
+            # the car's side)
+            cand = np.flatnonzero(~inside_mask & ~persons)
+            conf = self._conflict_lanes
+            for j, ln in zip(cand.tolist(), lanes[near[cand]].tolist()):
+                c = conf.get(ln)
+                if c is None:
+                    c = self._conflict_vias(path, ln)
+                if c:
+                    extra.add(j)
+            if extra:
+                keep = sorted(keep + list(extra))
         best = None
-        for j in keep.tolist():
+        for j in keep:
             i = near[j]
             person, crossing = bool(persons[j]), bool(crossings[j])
             ext_lon, gap, hw = float(ext_lons[j]), float(gaps[j]), float(hws[j])
@@ -560,7 +593,6 @@ class Autopilot:
                     mine = path.lanes_between(s_here - 5.0, s_here + SENSE_RANGE_M)
                     my_edges = {ln.rsplit("_", 1)[0] for ln in mine}
                     my_junctions = {junction_of(ln) for ln in mine if ln.startswith(":")}
-                lanes = getattr(actors, "lane", None)
                 if lanes is not None:
                     lane = lanes[i] or None     # from the step's context subscription
                 else:
@@ -570,15 +602,28 @@ class Autopilot:
                         lane = None
                 if lane:
                     on_path = lane in mine or lane.rsplit("_", 1)[0] in my_edges
-                    if not on_path and lane not in foes and lane.startswith(":") and not person:
+                    if not on_path and lane not in foes and not person:
                         # a junction lane that SUMO does not make a foe of the path's but that
                         # runs over it (two junctions drawn into each other, a turn drawn across
-                        # the end of the road in: Monaco): timed along its own lane
-                        hit = self._lane_conflict(path, lane, actors, i, s_here, v_ego)
+                        # the end of the road in: Monaco): timed along its own lane, or along
+                        # the lane it is on and on into such a junction lane
+                        if lane.startswith(":"):
+                            hit = self._lane_conflict(path, lane, actors, i, s_here, v_ego)
+                        else:
+                            hit = None
+                            vias = self._conflict_lanes.get(lane)
+                            for via in vias if vias is not None else self._conflict_vias(path, lane):
+                                if via in foes:
+                                    continue
+                                h = self._lane_conflict(path, via, actors, i, s_here, v_ego, approach=lane)
+                                if h is not None and (hit is None or h.gap < hit.gap):
+                                    hit = h
                         if hit is not None:
                             if best is None or hit.gap < best.gap:
                                 best = hit
                             continue
+                    if j in extra:
+                        continue        # (kept for the timing above only)
                     if not on_path:
                         if lane in foes:
                             crossing = True
@@ -669,15 +714,64 @@ class Autopilot:
             self._lane_shapes[lane] = got
         return got
 
-    def _lane_conflict(self, path, lane: str, actors, i: int, s_here: float, v_ego: float) -> Lead | None:
-        """The vehicle `i` on junction lane `lane`, if that lane passes within the two bodies'
-        half widths (+ LANE_CONFLICT_MARGIN_M) of the path ahead and the vehicle is there while
-        the car would be: a stop before that stretch. Its times in and out come from its
-        distance along its lane and its speed."""
+    def _vias(self, lane: str) -> tuple:
+        """The junction lanes that the links of (normal) lane `lane` go through (the whole
+        network's, read once per network)."""
+        if self._lane_vias is None:
+            try:
+                self._lane_vias = self.sim.traffic.via_lanes()
+            except Exception:
+                self._lane_vias = {}
+        return self._lane_vias.get(lane, ())
+
+    def _over(self, path, lane: str) -> bool:
+        """Does junction lane `lane`, of a junction the path does not go through, come within
+        OVER_PATH_M of the path anywhere (cached per path; ``_lane_conflict`` looks closer)?
+        (In the path's own junctions SUMO's right of way decides: ``_junctions``.)"""
+        got = self._over_path.get(lane)
+        if got is None:
+            got = ()
+            if junction_of(lane) not in self._path_junctions:
+                P, _ = self._lane_shape(lane)
+                if len(P):
+                    lo, hi = P.min(axis=0) - OVER_PATH_M, P.max(axis=0) + OVER_PATH_M
+                    box = np.flatnonzero(np.all((path.xy >= lo) & (path.xy <= hi), axis=1))
+                    if len(box):
+                        d2 = ((P[:, None, :] - path.xy[box][None, :, :]) ** 2).sum(axis=2)
+                        close = box[d2.min(axis=0) < OVER_PATH_M ** 2]
+                        if len(close):      # the path's stretch near it
+                            got = (float(path.s[close.min()]), float(path.s[close.max()]))
+            self._over_path[lane] = got
+        return bool(got)
+
+    def _conflict_vias(self, path, lane) -> tuple:
+        """The junction lanes over the path (``_over``) that a vehicle on `lane` is on or heads
+        into: `lane` itself, or those its links go through (cached per path)."""
+        got = self._conflict_lanes.get(lane)
+        if got is None:
+            if not lane:
+                got = ()
+            elif lane.startswith(":"):
+                got = (lane,) if self._over(path, lane) else ()
+            else:
+                got = tuple(via for via in self._vias(lane) if self._over(path, via))
+            self._conflict_lanes[lane] = got
+        return got
+
+    def _lane_conflict(self, path, lane: str, actors, i: int, s_here: float, v_ego: float,
+                       approach: str | None = None) -> Lead | None:
+        """The vehicle `i` on junction lane `lane` (or on lane `approach` that leads into it),
+        if that lane passes within the two bodies' half widths (+ LANE_CONFLICT_MARGIN_M) of the
+        path ahead and the vehicle is there while the car would be: a stop before that
+        stretch. Its times in and out come from its distance along its lane(s) and its speed."""
+        s1 = s_here + SENSE_RANGE_M
+        if approach is not None:
+            near = self._over_path.get(lane)      # (where on the path it comes near: _over)
+            if not near or near[1] < s_here - self.length - 5.0 or near[0] > s1:
+                return None
         P, arc = self._lane_shape(lane)
         if not len(P):
             return None
-        s1 = s_here + SENSE_RANGE_M
         s, off = path.project_many(P[:, 0], P[:, 1], s_here - 5.0, s1)
         W, L = float(actors.width[i]), float(actors.length[i])
         hit = np.isfinite(s) & (np.abs(off) < 0.5 * (self.width + W) + LANE_CONFLICT_MARGIN_M) & (s < s1 - 1.0)
@@ -687,7 +781,13 @@ class Autopilot:
         yaw = float(actors.yaw[i])
         fx = float(actors.x[i]) + 0.5 * L * math.cos(yaw)
         fy = float(actors.y[i]) + 0.5 * L * math.sin(yaw)
-        pos = float(arc[int(np.argmin((P[:, 0] - fx) ** 2 + (P[:, 1] - fy) ** 2))])
+        if approach is None:
+            pos = float(arc[int(np.argmin((P[:, 0] - fx) ** 2 + (P[:, 1] - fy) ** 2))])
+        else:       # on the lane into it: its distance to that lane's end, before the junction lane's start
+            A, arc_a = self._lane_shape(approach)
+            if not len(A):
+                return None
+            pos = float(arc_a[int(np.argmin((A[:, 0] - fx) ** 2 + (A[:, 1] - fy) ** 2))] - arc_a[-1])
         if pos - L > a1:
             return None                                   # its back is past the stretch
         sp = float(actors.speed[i])

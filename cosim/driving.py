@@ -688,6 +688,10 @@ class LanePath:
         keep[1:] = np.hypot(*np.diff(xy, axis=0).T) > 1e-3
         self.xy = xy[keep]
         self.lane_of = [lane_of[k] for k in np.nonzero(keep)[0]]
+        # runs of points on one lane (lanes_between looks them up instead of every point)
+        starts = [k for k in range(len(self.lane_of)) if k == 0 or self.lane_of[k][0] != self.lane_of[k - 1][0]]
+        self._run_starts = np.array(starts, dtype=int)
+        self._run_lanes = [self.lane_of[k][0] for k in starts]
         d = np.hypot(*np.diff(self.xy, axis=0).T)
         self.s = np.concatenate([[0.0], np.cumsum(d)])
         self.length = float(self.s[-1])
@@ -905,8 +909,12 @@ class LanePath:
         return float(self.heading[self.index_at(s)])
 
     def lanes_between(self, s0: float, s1: float) -> set:
+        """The lanes of the path's points from arc length s0 to s1."""
         i0, i1 = self.index_at(s0), self.index_at(s1)
-        return {self.lane_of[k][0] for k in range(i0, i1 + 1)}
+        if i1 < i0:
+            return set()
+        r0, r1 = np.searchsorted(self._run_starts, (i0, i1), side="right") - 1
+        return set(self._run_lanes[r0:r1 + 1])
 
     def max_curvature(self, s0: float, s1: float) -> float:
         m = (self.s >= s0) & (self.s <= s1)

@@ -60,7 +60,7 @@ _STATIC = {
 } | {
     ("sumo", "edge", n) for n in ("getLaneNumber", "getIDList", "getStreetName", "getFromJunction",
                                   "getToJunction", "getParameter")
-} | {("incoming_lanes",)} | {
+} | {("incoming_lanes",), ("via_lanes",)} | {
     ("sumo", "junction", n) for n in ("getIncomingEdges", "getOutgoingEdges", "getPosition", "getShape",
                                       "getIDList")
 } | {

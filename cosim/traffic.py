@@ -1314,17 +1314,28 @@ class SumoTraffic(Component):
     # --- network ------------------------------------------------------------------------
     def incoming_lanes(self) -> dict[str, list[str]]:
         """lane -> the normal lanes with a link into it (one call: cached per network)."""
+        self._read_links()
+        return self._incoming
+
+    def via_lanes(self) -> dict[str, tuple]:
+        """normal lane -> the junction lanes its links go through (one call: cached per network)."""
+        self._read_links()
+        return self._vias
+
+    def _read_links(self) -> None:
         key = (self._generation, str(self.net_file))
         if getattr(self, "_incoming_key", None) != key:
             s = self._require()
             inc: dict = {}
+            vias: dict = {}
             for lane in s.lane.getIDList():
                 if lane.startswith(":"):
                     continue
-                for link in s.lane.getLinks(lane):
+                links = s.lane.getLinks(lane)
+                for link in links:
                     inc.setdefault(link[0], []).append(lane)
-            self._incoming, self._incoming_key = inc, key
-        return self._incoming
+                vias[lane] = tuple(sorted({k[4] for k in links if k[4] and k[4].startswith(":")}))
+            self._incoming, self._vias, self._incoming_key = inc, vias, key
 
     # --- traffic lights -----------------------------------------------------------------
     def tls_states(self) -> dict[str, str]:

@@ -880,3 +880,66 @@ def test_a_car_already_on_a_crossing_junction_lane_goes_on_when_it_clears_it_in_
         assert ap._lane_conflict(path, lane, vehicle(25.0, 3.0), 0, s_e, 0.5) is not None
     finally:
         sim.teardown()
+
+
+def test_a_car_heading_into_a_junction_lane_over_the_path_is_timed_from_beside_the_car(helsinki):
+    """A junction lane that runs over the path (junctions drawn into each other) is watched
+    for the vehicles on the lanes that lead into it too, wherever they are: beside the car or
+    behind it (Monaco, seed 6: a car came up on the left on a road into the next junction,
+    whose lane across the car's road starts 25 m from that junction, and drove into the car's
+    side; the corridor check had left it out as beside the car). Standing, or on a lane that
+    does not lead there, it does not stop the car."""
+    import types
+
+    from cosim.driving import _resample, junction_of
+    from cosim.traffic import ActorsSnapshot
+
+    sim = start_sim(helsinki, start=HEL_MID, goal=HEL_GOAL)
+    try:
+        ap, path = sim.driver, sim.path
+        st = sim.vehicle.state()
+        s_e = s_of(sim, st.x, st.y)[0] + 20.0
+        s_c = s_e + 15.0                                 # the junction lane crosses the path here
+        h = path.heading_at(s_c)
+        c = np.array(path.point_at(s_c), dtype=float)
+        t, n = np.array([math.cos(h), math.sin(h)]), np.array([-math.sin(h), math.cos(h)])
+
+        def line(a, b):
+            P = _resample(np.array([c + a[0] * t + a[1] * n, c + b[0] * t + b[1] * n]), 1.0)
+            return P, np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(P, axis=0).T))])
+
+        approach, via = "appr_0", ":x_0_0"
+        ap._lane_shapes[approach] = line((-45.0, 8.0), (-6.0, 8.0))     # a road on the left, along the path
+        ap._lane_shapes[via] = line((-6.0, 8.0), (2.0, -6.0))           # its junction lane, across the path
+        ap._lane_vias = {approach: (via,), "other_0": ()}
+        if ap._path is not path:
+            ap._new_path(path)
+        ex, ey = path.point_at(s_e)
+        car = types.SimpleNamespace(x=float(ex), y=float(ey), yaw=path.heading_at(s_e), speed=6.0, steer=0.0)
+        one = lambda v: np.array([v])                    # noqa: E731
+
+        def vehicle(along: float, speed: float, lane: str = approach):
+            """A car on the road on the left, its centre `along` m from the car's (+ = ahead)."""
+            x, y = c + (-15.0 + along) * t + 8.0 * n
+            return ActorsSnapshot(0.0, np.array(["c1"], dtype=object), np.array(["passenger"], dtype=object),
+                                  one(x), one(y), one(h), one(4.5), one(1.8), one(1.5), one(speed), one(0.0),
+                                  np.array([lane], dtype=object))
+
+        assert ap._over(path, via) and ap._conflict_vias(path, approach) == (via,)
+        # the same lane in a junction the path goes through is left to that junction's right of way
+        own = next(junction_of(ln) for ln, _ in path.lane_of if ln.startswith(":"))
+        ap._lane_shapes[f":{own}_99_0"] = ap._lane_shapes[via]
+        assert not ap._over(path, f":{own}_99_0")
+        # beside the car at 8 m/s: it comes to the lane over the path when the car does
+        lead = ap._actors_on_path(vehicle(0.0, 8.0), car, s_e, path)
+        assert lead is not None and lead.actor == "c1"
+        assert 0.0 < lead.gap < 15.0 - ap.front          # a stop before the stretch
+        # 10 m behind the car, as fast: still in time to meet it there
+        assert ap._actors_on_path(vehicle(-10.0, 8.0), car, s_e, path) is not None
+        # standing at the end of its road, or on a road that does not lead there: no stop
+        assert ap._actors_on_path(vehicle(0.0, 0.0), car, s_e, path) is None
+        assert ap._actors_on_path(vehicle(0.0, 8.0, "other_0"), car, s_e, path) is None
+        # far behind: gone through long after the car
+        assert ap._actors_on_path(vehicle(-40.0, 4.0), car, s_e, path) is None
+    finally:
+        sim.teardown()
