@@ -196,10 +196,11 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
             if goal is not None and sim.summary.arrived:
                 break
             # re-plan when the way stays blocked (the world's edge, a pole standing in a lane)
-            if abs(ego.speed) < 0.1 and (ap.reason in ("edge of the world", "lead static", "end of path")
+            if abs(ego.speed) < 0.1 and (ap.reason in ("edge of the world", "lead static", "end of path", "too steep")
                                          or ap.reason.startswith("clearance")):
                 blocked_since = blocked_since if blocked_since is not None else ego.t
-                if ego.t - blocked_since > (5.0 if ap.reason in ("edge of the world", "end of path") else 20.0):
+                if ego.t - blocked_since > (5.0 if ap.reason in ("edge of the world", "end of path", "too steep")
+                                            else 20.0):
                     try:
                         sim.set_goal(None)
                         reroutes += 1
@@ -238,6 +239,7 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
         "time_gap_p5_s": stats.as_dict()["time_gap_p5_s"], "red_light_stops": stats.red_light_stops,
         "stop_sign_stops": stats.stop_sign_stops, "pedestrian_yields": stats.pedestrian_yields,
         "sweeps": stats.sweeps, "sweep_events": [e for e in stats.events if e[1] == "sweep"][:10],
+        "rollbacks": stats.rollbacks, "rollback_events": [e for e in stats.events if e[1] == "rollback"][:10],
         "ego_collisions": summary.ego_collisions, "sumo_collisions": summary.sumo_collisions,
         "reroutes": reroutes, "arrived": summary.arrived,
         "near_miss_events": [e for e in stats.events if e[1] == "near miss"][:10],

@@ -81,6 +81,7 @@ NEAR_MISS_GAP_M = 2.0
 SENSE_RANGE_M = 80.0       # obstacles on the path are considered up to here
 CROSS_LANE_MARGIN_M = 3.5  # a crossing vehicle's road may have a lane nearer than its own
 LANE_CONFLICT_MARGIN_M = 0.5  # a junction lane over the path: clear of the two bodies by this
+ROLLBACK_MPS = 0.3           # moving backwards this fast while driving forward: brakes (control)
 OVER_PATH_M = 3.0            # a junction lane this near the path is looked at closer (_over)
 MERGE_WATCH_M = 2.5        # a vehicle in a lane the path changes into is followed from this far beside
 HARD_DECEL = 6.0           # m/s2: the car's firm braking (what "can still stop before it" means)
@@ -132,6 +133,7 @@ class DrivingStats:
     stop_sign_stops: int = 0
     pedestrian_yields: int = 0
     sweeps: int = 0          # times the car's sweep found something beside the path corridor (_sweep)
+    rollbacks: int = 0       # times the car rolled back (ROLLBACK_MPS) against the throttle
     time_gaps: list = field(default_factory=list, repr=False)   # steady following samples, s
     events: list = field(default_factory=list, repr=False)      # (t, kind, detail)
 
@@ -140,7 +142,7 @@ class DrivingStats:
         return {"near_misses": self.near_misses, "stops": self.stops, "min_ttc_s": round(self.min_ttc_s, 2),
                 "min_gap_moving_m": round(self.min_gap_moving_m, 2), "red_light_stops": self.red_light_stops,
                 "stop_sign_stops": self.stop_sign_stops, "pedestrian_yields": self.pedestrian_yields,
-                "sweeps": self.sweeps, "time_gap_p5_s": round(float(np.percentile(tg, 5)), 2) if len(tg) else None}
+                "sweeps": self.sweeps, "rollbacks": self.rollbacks, "time_gap_p5_s": round(float(np.percentile(tg, 5)), 2) if len(tg) else None}
 
 
 class Autopilot:
@@ -179,6 +181,8 @@ class Autopilot:
         self.scan = None
         self.stats = DrivingStats()
         self.last = (0.0, 0.0, 0.0)
+        self._too_steep = False           # rolled back at full throttle on this path: hold (control)
+        self._rolling_back = False
         self._path = None
         self._s_goal = None
         self._stop_state: dict = {}
@@ -276,6 +280,22 @@ class Autopilot:
             targets.append((v_sweep, "close tracking"))
         if self.sweep is not None:
             targets.append((stop_speed(self.sweep[0] - SWEEP_STOP_M, SWEEP_DECEL), "clearance " + self.sweep[2]))
+        # rolling back against the throttle: the road is steeper than the car climbs (a DEM's
+        # cliff under a 14 m Monaco street left it at 50 %: the car rolled back at full throttle
+        # to 4.2 m/s into the car behind it). On the brakes instead: at full throttle for good
+        # on this path (a re-plan tries again), else for the moment (a hill start's sag)
+        rolling_back = v < -ROLLBACK_MPS
+        if rolling_back and not self._too_steep:
+            if not self._rolling_back:
+                self.stats.rollbacks += 1
+                self.stats.events.append((round(t, 2), "rollback", f"{v:.2f} m/s, pitch {math.degrees(st.pitch):.1f} deg"))
+            if self.last[0] >= 0.99:
+                self._too_steep = True
+                log.warning("the car rolls back at full throttle at t=%.1f s (pitch %.1f deg): too steep "
+                            "for it, held on the brakes", t, math.degrees(st.pitch))
+        self._rolling_back = rolling_back
+        if rolling_back or self._too_steep:
+            targets.append((0.0, "too steep" if self._too_steep else "rolling back"))
         v_target, reason = min(targets, key=lambda x: x[0])
         v_target = max(0.0, v_target)
         a_ff = 0.0
@@ -305,6 +325,7 @@ class Autopilot:
 
     def _new_path(self, path):
         self._path = path
+        self._too_steep = False
         self._over_path, self._conflict_lanes = {}, {}
         self._path_lanes = {ln for ln, _ in path.lane_of}
         self._path_junctions = {junction_of(ln) for ln in self._path_lanes if ln.startswith(":")}

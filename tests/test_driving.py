@@ -943,3 +943,41 @@ def test_a_car_heading_into_a_junction_lane_over_the_path_is_timed_from_beside_t
         assert ap._actors_on_path(vehicle(-40.0, 4.0), car, s_e, path) is None
     finally:
         sim.teardown()
+
+
+def test_the_car_brakes_when_it_rolls_back_and_holds_where_it_cannot_climb(helsinki):
+    """Rolling backwards while it drives forward, the car brakes instead of rolling on into
+    what is behind it (Monaco, seed 10: a 14 m street at 50 %, a DEM cliff, the car rolled back
+    at full throttle to 4.2 m/s into a car behind). At full throttle that is a road too steep
+    for it: it stays on the brakes on this path ("too steep"); a rollback at part throttle (a
+    hill start's sag) brakes only while it lasts."""
+    import dataclasses
+
+    sim = start_sim(helsinki, start=HEL_MID, goal=HEL_GOAL)
+    try:
+        for _ in range(20):
+            sim.step()
+        ap = sim.driver
+        st = sim.vehicle.state()
+        s_here = s_of(sim, st.x, st.y)[0]
+        actors = sim.last_snapshot
+        back = dataclasses.replace(st, speed=-0.6)
+        # part throttle: brakes while rolling back, drives on after
+        ap.last = (0.4, 0.0, 0.0)
+        throttle, brake, _ = ap.control(back, s_here, actors, 0.1)
+        assert (throttle, brake) == (0.0, 1.0) and ap.reason == "rolling back"
+        throttle, brake, _ = ap.control(dataclasses.replace(st, speed=0.0), s_here, actors, 0.1)
+        assert throttle > 0.0 and brake == 0.0 and ap.reason != "rolling back"
+        # full throttle: too steep, held on the brakes, also once it stands
+        ap.last = (1.0, 0.0, 0.0)
+        throttle, brake, _ = ap.control(back, s_here, actors, 0.1)
+        assert (throttle, brake) == (0.0, 1.0) and ap.reason == "too steep"
+        throttle, brake, _ = ap.control(dataclasses.replace(st, speed=0.0), s_here, actors, 0.1)
+        assert (throttle, brake) == (0.0, 1.0) and ap.reason == "too steep"
+        assert ap.stats.rollbacks == 2
+        # a new path (a re-plan) tries again
+        sim.replan()
+        sim.step()
+        assert ap.reason != "too steep"
+    finally:
+        sim.teardown()
