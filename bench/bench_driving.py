@@ -149,6 +149,7 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
     # would wait for its step in flight, and a SUMO crash there would escape the loop's restart)
     last_gen, last_path = sim.streamer.swaps if sim.streamer is not None else 0, sim.path
     reroutes = 0
+    reroute_events = []
     blocked_since = None
     settled = False
     wall0 = time.perf_counter()
@@ -204,6 +205,7 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
                     try:
                         sim.set_goal(None)
                         reroutes += 1
+                        reroute_events.append((round(ego.t, 1), ap.reason))
                     except Exception as e:
                         logging.info("re-route failed: %s", e)
                     blocked_since = None
@@ -241,7 +243,7 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
         "sweeps": stats.sweeps, "sweep_events": [e for e in stats.events if e[1] == "sweep"][:10],
         "rollbacks": stats.rollbacks, "rollback_events": [e for e in stats.events if e[1] == "rollback"][:10],
         "ego_collisions": summary.ego_collisions, "sumo_collisions": summary.sumo_collisions,
-        "reroutes": reroutes, "arrived": summary.arrived,
+        "reroutes": reroutes, "reroute_events": reroute_events[:10], "arrived": summary.arrived,
         "near_miss_events": [e for e in stats.events if e[1] == "near miss"][:10],
         "lat_worst": sorted(worst, reverse=True)[:5],
         "speed_worst": sorted(speed_worst, key=lambda w: -abs(w[0]))[:5],

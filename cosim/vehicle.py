@@ -253,7 +253,7 @@ def min_turn_radius(spec: CarSpec = SPEC) -> float:
 
 # --- drivetrain, brakes, resistances (not expressible in URDF; see models/car/README.md) ---
 GRAVITY = 9.81  # m/s^2
-MAX_WHEEL_TORQUE = 1500.0  # N m, total at the driven wheels (~250 N m engine x 6:1 in 1st)
+MAX_WHEEL_TORQUE = 3000.0  # N m, total at the driven wheels (~250 N m engine x 13.5:1 in 1st x 0.9)
 MAX_POWER = 75_000.0  # W at the wheels (~100 hp)
 TOP_SPEED = 50.0  # m/s, governed: the drive torque fades to zero over GOVERNOR_BAND below it
 REVERSE_SPEED = 8.0  # m/s, governed top speed in reverse
