@@ -981,3 +981,39 @@ def test_the_car_brakes_when_it_rolls_back_and_holds_where_it_cannot_climb(helsi
         assert ap.reason != "too steep"
     finally:
         sim.teardown()
+
+
+def test_the_sweep_leaves_out_a_car_queued_just_behind(helsinki):
+    """The car's sweep looks where the car goes: a car queued within the sweep's margin behind
+    its rear bumper is not in its way (Monaco, dense seed 3: a car standing 5 cm behind held
+    the car for good, "clearance vehicle" at 0 m, nine re-plans); the same car as close in
+    front is."""
+    import types
+
+    from cosim.autopilot import SWEEP_MARGIN_M
+    from cosim.traffic import ActorsSnapshot
+
+    sim = start_sim(helsinki, start=HEL_MID, goal=HEL_GOAL)
+    try:
+        ap, path = sim.driver, sim.path
+        st = sim.vehicle.state()
+        s_e = s_of(sim, st.x, st.y)[0] + 10.0
+        ex, ey = path.point_at(s_e)
+        h = path.heading_at(s_e)
+        car = types.SimpleNamespace(x=float(ex), y=float(ey), yaw=h, speed=0.0, steer=0.0)
+        ap._lat, ap._k = 0.5, path.index_at(s_e)         # off the path: the sweep rolls
+        one = lambda v: np.array([v])                    # noqa: E731
+
+        def queued(along: float):
+            """A 4.5 m car on the path, its centre `along` m from the car's (+ = ahead)."""
+            x, y = ex + along * math.cos(h), ey + along * math.sin(h)
+            return ActorsSnapshot(0.0, np.array(["q1"], dtype=object), np.array(["passenger"], dtype=object),
+                                  one(x), one(y), one(h), one(4.5), one(1.8), one(1.5), one(0.0), one(0.0),
+                                  np.array(["x_0"], dtype=object))
+
+        gap = 0.5 * SWEEP_MARGIN_M                        # bumper to bumper, within the margin
+        assert ap._sweep(car, path, s_e, queued(-(ap.length / 2 + 2.25 + gap)), ap.pp) is None
+        hit = ap._sweep(car, path, s_e, queued(ap.length / 2 + 2.25 + gap), ap.pp)
+        assert hit is not None and hit[1] == "q1" and hit[0] == 0.0
+    finally:
+        sim.teardown()
