@@ -140,6 +140,19 @@ class ActorMirror:
                 X, Y, YAW = x, y, yaw
             z = self.world.ground_z(X, Y)
             z = np.where(np.isfinite(z), z, 0.0)
+            lanes = getattr(snap, "lane", None)
+            if lanes is not None:
+                # on a bridge: on its deck, not on the terrain under it (Monaco, seed 13: a car
+                # on Boulevard du Larvotto's bridge, mirrored 5 m down, drove through the car
+                # standing on the avenue beneath)
+                bridges = self.world.bridge_lanes()
+                if bridges:
+                    actor_of = np.concatenate((np.arange(n), np.asarray(where, dtype=int))) if boxes else np.arange(n)
+                    on = np.flatnonzero([lanes[a] in bridges for a in actor_of.tolist()])
+                    if len(on):
+                        top = self.world.road_top_z(X[on], Y[on])
+                        up = np.isfinite(top) & (top > z[on] + 0.5)
+                        z[on[up]] = top[up]
             pitch = self.world.slope_pitch(X, Y, YAW)
             pitch = np.where(np.isfinite(pitch), pitch, slope)
             # quaternions of (roll 0, pitch -p, yaw) for all actors (and boxes) at once

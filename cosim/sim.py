@@ -186,6 +186,7 @@ class Simulation:
             self.vehicle = EgoVehicle(self.physics.client, position=(x, y, z + 0.05), yaw=yaw)
             self.vehicle.place_on_ground(x, y, yaw, z)      # on the road surface, tilted with it
             self.mirror = ActorMirror(self.physics.client, self.world, visuals=cfg.gui or cfg.render)
+            self.world.bridge_lanes()           # (read now, not in the first frame: the mirror's decks)
             self._plan_route(lane, pos)
             self.traffic.add_ego(route_edges=self.route)
             self.traffic.set_ego_pose(x, y, yaw, 0.0)

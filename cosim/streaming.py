@@ -60,6 +60,8 @@ def _build_window(cfg_dict: dict, window: tuple, out: str, traffic, seed: int, d
         w = build_world(cfg)
         net = Path(w["out"]) / w["net_file"]
         d = generate_demand(net, Path(w["out"]) / "traffic", density=traffic, seed=seed, duration=duration)
+        from .world import write_bridge_lanes
+        write_bridge_lanes(net)        # (read here, not in the loop's frame at the swap)
         conn.send(("ok", w["out"], [str(p) for p in d.route_files]))
     except BaseException as e:  # report anything, the loop decides
         conn.send(("error", f"{type(e).__name__}: {e}", []))

@@ -103,6 +103,45 @@ class World:
             out[m] = g.sample_tri(x[m], y[m])
         return out
 
+    def bridge_lanes(self) -> frozenset:
+        """The lanes of the network's bridges (OSM ``bridge=*``: decks, not on the ground):
+        from ``<net>.bridges.json`` beside the network if a window's build wrote it, else read
+        from the network (0.25 s: the simulation's setup asks first)."""
+        got = getattr(self, "_bridge_lanes", None)
+        if got is None or got[0] != self.net_file:
+            side = Path(str(self.net_file) + ".bridges.json")
+            if side.exists():
+                lanes = frozenset(json.loads(side.read_text()))
+            else:
+                lanes = _read_bridge_lanes(self.net_file)
+            got = self._bridge_lanes = (self.net_file, lanes)
+        return got[1]
+
+    def road_top_z(self, x, y, r: float = 3.0) -> np.ndarray:
+        """The highest road surface (asphalt mesh vertex) within ``r`` of each x/y, NaN where
+        none: a bridge's deck where it passes over another road (the terrain is under both)."""
+        from scipy.spatial import cKDTree
+
+        x = np.atleast_1d(np.asarray(x, dtype=float))
+        y = np.atleast_1d(np.asarray(y, dtype=float))
+        out = np.full(x.shape, np.nan)
+        trees = self.__dict__.setdefault("_asphalt_trees", {})
+        for k in range(len(x)):
+            key = self.tile_of(float(x[k]), float(y[k]))
+            got = trees.get(key)
+            if got is None:
+                f = self.tile_files(key).get("asphalt")
+                v = np.zeros((0, 3))
+                if f is not None and f.with_suffix(".npz").exists():
+                    v = np.load(f.with_suffix(".npz"))["v"].astype(float)
+                got = trees[key] = (cKDTree(v[:, :2]) if len(v) else None, v[:, 2])
+            tree, z = got
+            if tree is not None:
+                near = tree.query_ball_point((x[k], y[k]), r)
+                if near:
+                    out[k] = float(z[near].max())
+        return out
+
     def slope_pitch(self, x, y, yaw, d: float = 1.5) -> np.ndarray:
         """Pitch (rad, nose up positive) of a body at x/y heading yaw, from the ground."""
         c, s = np.cos(yaw), np.sin(yaw)
@@ -200,3 +239,18 @@ class World:
 
     def loaded_extent(self):
         return tuple(self.meta["extent_m"])
+
+
+def _read_bridge_lanes(net_file) -> frozenset:
+    from netgen.roadnet import read_net
+
+    return frozenset(ln.id for e in read_net(net_file).normal_edges() if getattr(e, "bridge", False)
+                     for ln in e.lanes)
+
+
+def write_bridge_lanes(net_file) -> None:
+    """``<net>.bridges.json``: the bridge lanes of a network, for ``World.bridge_lanes``."""
+    from netgen._atomic import write_text
+
+    write_text(Path(str(net_file) + ".bridges.json"), json.dumps(sorted(_read_bridge_lanes(net_file))))
+

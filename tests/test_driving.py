@@ -1017,3 +1017,41 @@ def test_the_sweep_leaves_out_a_car_queued_just_behind(helsinki):
         assert hit is not None and hit[1] == "q1" and hit[0] == 0.0
     finally:
         sim.teardown()
+
+
+def test_a_car_on_a_bridge_is_mirrored_on_its_deck_not_on_the_ground(monaco):
+    """A vehicle on a bridge's lane (OSM bridge=*) stands on the deck, not on the terrain under
+    it (Monaco, seed 13: a car on Boulevard du Larvotto's bridge, mirrored 5 m down on the
+    terrain, drove through the car standing on the avenue beneath); the same spot on another
+    lane stays on the ground."""
+    import pybullet as pb
+
+    from cosim.traffic import ActorsSnapshot
+
+    sim = start_sim(monaco)
+    try:
+        lane = "503783368_0"
+        assert lane in sim.world.bridge_lanes()
+        P = np.array(sim.traffic.sumo.lane.getShape(lane))[:, :2]
+        d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(P, axis=0).T))])
+        ss = np.arange(0.0, d[-1], 2.0)
+        X, Y = np.interp(ss, d, P[:, 0]), np.interp(ss, d, P[:, 1])
+        rise = sim.world.road_top_z(X, Y) - sim.world.ground_z(X, Y)
+        k = int(np.nanargmax(rise))
+        assert rise[k] > 3.0                      # the deck stands over the ground here
+        x, y = float(X[k]), float(Y[k])
+        h = float(np.arctan2(*(P[min(len(P) - 1, int(np.searchsorted(d, ss[k])))] - P[max(0, int(np.searchsorted(d, ss[k])) - 1)])[::-1]))
+        one = lambda v: np.array([v])             # noqa: E731
+        ground = float(sim.world.ground_z([x], [y])[0])
+
+        def mirrored(on_lane):
+            snap = ActorsSnapshot(0.0, np.array(["b1"], dtype=object), np.array(["passenger"], dtype=object),
+                                  one(x), one(y), one(h), one(4.5), one(1.8), one(1.5), one(10.0), one(0.0),
+                                  np.array([on_lane], dtype=object))
+            sim.mirror.update(snap)
+            return pb.getBasePositionAndOrientation(sim.mirror.body_of("b1"), physicsClientId=sim.physics.client)[0][2]
+
+        assert mirrored(lane) > ground + 3.0
+        assert mirrored("25103769#2_1") < ground + 2.0
+    finally:
+        sim.teardown()
