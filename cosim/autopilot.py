@@ -79,6 +79,7 @@ YIELD_GIVE_UP_S = 40.0     # after waiting this long at a yield, go when nothing
 NEAR_MISS_TTC_S = 1.5
 NEAR_MISS_GAP_M = 2.0
 SENSE_RANGE_M = 80.0       # obstacles on the path are considered up to here
+LEVEL_M = 4.0              # a deck this high over the terrain is another level than the road under it
 CROSS_LANE_MARGIN_M = 3.5  # a crossing vehicle's road may have a lane nearer than its own
 LANE_CONFLICT_MARGIN_M = 0.5  # a junction lane over the path: clear of the two bodies by this
 ROLLBACK_MPS = 0.3           # moving backwards this fast while driving forward: brakes (control)
@@ -199,6 +200,9 @@ class Autopilot:
         self._over_path: dict = {}        # junction lane -> the path's stretch near it, or () (per path)
         self._path_lanes: set = set()     # the lanes of the path
         self._path_junctions: set = set()  # the junctions it goes through
+        self._path_bridge = None          # per path point: on a bridge's lane (None: no bridge)
+        self._path_rises: dict = {}       # path point -> how high it stands over the terrain (_path_rise)
+        self._path_edges: set = set()     # the edges of the path
         self._net_generation = getattr(getattr(sim, "traffic", None), "_generation", 0)
         self._near_miss_until = -1.0
         self._sweeping = False
@@ -226,6 +230,7 @@ class Autopilot:
             self._new_path(path)
         self._st, self._s_here = st, s_here
         self._k, _, self._lat = path.project(st.x, st.y, path.index_at(s_here))
+        actors = self._same_level(actors, path, s_here)
         v = st.speed
         t = getattr(sim, "t", 0.0)
         # the car's own sweep: anything it would touch beside the lane path's corridor; where
@@ -341,6 +346,75 @@ class Autopilot:
             else:
                 self._s_goal = path.length
         self._osm_stops = self._match_osm_stop_signs(path)
+        world = getattr(sim, "world", None)
+        bridges = world.bridge_lanes() if world is not None and hasattr(world, "bridge_lanes") else ()
+        on = np.array([ln in bridges for ln, _ in path.lane_of], dtype=bool) if bridges else None
+        self._path_bridge = on if on is not None and on.any() else None
+        self._path_rises = {}
+        self._path_edges = {e for _, e in path.lane_of}
+
+    def _same_level(self, actors, path, s_here: float):
+        """`actors` without those on another level than the path: a car on a bridge's deck over
+        the path, or on the road under a deck the path goes over. An actor's level is how high
+        it stands over the terrain (``ActorMirror.raised``: on a deck, else 0); the path's, where
+        the actor would meet it (its projection), how high the path's lane is there over the
+        terrain (a bridge's lane, else 0); they are other levels more than LEVEL_M apart.
+        Actors on the path's roads, persons and vehicles on no known lane are kept. Such a car crossing the path is no lead, foe or
+        obstacle (Monaco, seed 13: the car stopped for cars passing over it on Boulevard du
+        Larvotto's bridge). The actors as they are where no actor stands on a deck and the
+        path has no bridge near."""
+        raised = getattr(getattr(self.sim, "mirror", None), "raised", None) or {}
+        bridge = self._path_bridge
+        n = len(actors)
+        if not n:
+            return actors
+        s0, s1 = s_here - 20.0, s_here + SENSE_RANGE_M + 40.0
+        if bridge is not None:
+            i0, i1 = path.index_at(s0), path.index_at(s1) + 1
+            if not bridge[i0:i1].any():
+                bridge = None
+        if not raised and bridge is None:
+            return actors
+        if bridge is None:          # only raised actors can be on another level
+            cand = np.array([a in raised for a in actors.ids.tolist()], dtype=bool)
+            cand = np.flatnonzero(cand)
+        else:
+            cand = np.arange(n)
+        lanes = getattr(actors, "lane", None)
+        if lanes is None:
+            return actors
+        if len(cand):
+            # (a person's level is not known: persons on a bridge's footway stand on the
+            # terrain in this world, and are kept; so is a vehicle on no known lane)
+            edges = self._path_edges
+            cand = cand[[bool(ln) and ln.rsplit("_", 1)[0] not in edges for ln in lanes[cand].tolist()]]
+        if not len(cand):
+            return actors
+        s, _ = path.project_many(actors.x[cand], actors.y[cand], s0, s1)
+        ok = np.isfinite(s)
+        h_actor = np.array([raised.get(a, 0.0) for a in actors.ids[cand].tolist()])
+        h_path = np.zeros(len(cand))
+        if bridge is not None:
+            idx = np.clip(np.searchsorted(path.s, np.where(ok, s, 0.0), side="right") - 1, 0, len(path.s) - 1)
+            for k in np.flatnonzero(ok & self._path_bridge[idx]).tolist():
+                h_path[k] = self._path_rise(path, int(idx[k]))
+        other = cand[ok & (np.abs(h_actor - h_path) > LEVEL_M)]
+        if not len(other):
+            return actors
+        keep = np.ones(n, dtype=bool)
+        keep[other] = False
+        return actors.subset(keep)
+
+    def _path_rise(self, path, i: int) -> float:
+        """How high the path's point `i` (on a bridge's lane) stands over the terrain: the
+        highest road surface there less the terrain's height (0 where unknown; cached)."""
+        got = self._path_rises.get(i)
+        if got is None:
+            world = self.sim.world
+            x, y = path.xy[i]
+            r = float(world.road_top_z([x], [y])[0] - world.ground_z([x], [y])[0])
+            got = self._path_rises[i] = r if math.isfinite(r) and r > 0.0 else 0.0
+        return got
 
     def _world_edge(self, path, s_here, horizon):
         """Arc length of the first path point ahead outside the built chunks, or None."""

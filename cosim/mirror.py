@@ -31,6 +31,7 @@ PARK_Z = -500.0
 LONG_M = 7.0          # vehicles longer than this are chains of boxes
 SEGMENT_M = 4.0       # ... of at most this length
 TRAIL_STEP_M = 1.0    # the front's path is kept as points this far apart (at least)
+LEVEL_M = 4.0         # an actor standing this much higher or lower than the ego is on another level (a deck)
 COLOURS = {"person": (0.85, 0.55, 0.20, 1), "bus": (0.9, 0.75, 0.1, 1), "truck": (0.55, 0.55, 0.6, 1),
            "default": (0.25, 0.40, 0.75, 1)}
 
@@ -87,6 +88,7 @@ class ActorMirror:
         self.created = 0
         self.held = 0
         self.held_at: dict = {}     # actor id -> (x, y): where an actor held this frame stands
+        self.raised: dict = {}      # actor id -> m: an actor on a bridge's deck, this high over the terrain
         self.max_error_m = 0.0
         self._keys: dict = {}       # actor id -> size key
         self._last: dict = {}       # body -> last position set (a body standing still is not moved)
@@ -117,14 +119,18 @@ class ActorMirror:
     def update(self, snap, ego=None) -> dict:
         """Mirror a traffic snapshot (cosim.traffic.ActorsSnapshot). Returns counts.
 
-        `ego` = (x, y, yaw, length, width): an actor whose new pose would overlap the ego's
-        footprint is held where it was (a kinematic body must never teleport into the
-        physics car: SUMO does not always see the ego, e.g. while it crosses a junction)."""
+        `ego` = (x, y, yaw, length, width[, z]): an actor whose new pose would overlap the
+        ego's footprint is held where it was (a kinematic body must never teleport into the
+        physics car: SUMO does not always see the ego, e.g. while it crosses a junction);
+        given the ego's ground z, not one on another level (a bridge's deck over it, or the
+        road under the deck it drives on). ``raised`` records the actors placed on a deck."""
         c = self.client
         n = len(snap)
         seen = set()
         held = 0
         self.held_at = {}
+        raised = self.raised = {}
+        ids_ = snap.ids
         if n:
             x, y, yaw = snap.x, snap.y, snap.yaw
             kinds = snap.kind
@@ -152,6 +158,9 @@ class ActorMirror:
                     if len(on):
                         top = self.world.road_top_z(X[on], Y[on])
                         up = np.isfinite(top) & (top > z[on] + 0.5)
+                        for a, dz in zip(on[up].tolist(), (top[up] - z[on[up]]).tolist()):
+                            if a < n:
+                                raised[ids_[a]] = dz
                         z[on[up]] = top[up]
             pitch = self.world.slope_pitch(X, Y, YAW)
             pitch = np.where(np.isfinite(pitch), pitch, slope)
@@ -167,7 +176,8 @@ class ActorMirror:
                     chain_at.setdefault(k, []).append(boxes[i] + (zl[i], cl[i], quat[n + i]))
             if ego is not None:
                 for k, bx in chain_at.items():
-                    if any(_boxes_overlap(ego, b[:5], margin=0.1) for b in bx):
+                    if any(_boxes_overlap(ego[:5], b[:5], margin=0.1) and (len(ego) < 6 or abs(b[5] - ego[5]) < LEVEL_M)
+                           for b in bx):
                         chain_at[k] = None          # held where it was
             z, cosp = z[:n], cosp[:n]
             # size keys (box sizes rounded so that bodies can be pooled), computed once per actor
@@ -199,7 +209,8 @@ class ActorMirror:
                 if k in chain_at:
                     held += self._place_chain(aid, cur, key, chain_at[k])
                     continue
-                if near[k] and _boxes_overlap(ego, (xs[k], ys[k], yaws[k], key[1], key[2]), margin=0.1):
+                if near[k] and _boxes_overlap(ego[:5], (xs[k], ys[k], yaws[k], key[1], key[2]), margin=0.1) \
+                        and (len(ego) < 6 or abs(zs[k] - ego[5]) < LEVEL_M):
                     held += 1
                     last = self._last.get(cur[0])
                     if last is not None:

@@ -73,6 +73,7 @@ import re
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import shapely
@@ -82,6 +83,9 @@ from shapely.geometry import Polygon, box
 from .errors import BuildError
 from .meshio import GlbTemplate, JsonTemplate, write_file, write_obj
 from .osm_features import OSMFeatures, polygonal
+
+if TYPE_CHECKING:          # (annotations only: trimesh is imported where it is used)
+    import trimesh
 
 LEVEL_HEIGHT_M = 3.0
 MIN_AREA_M2 = 2.0

@@ -65,6 +65,7 @@ import zlib
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import shapely
@@ -75,6 +76,9 @@ from .buildings import chunk_index, parse_length
 from .errors import BuildError
 from .meshio import glb_bytes, write_file, write_obj
 from .osm_features import OSMFeatures, polygonal
+
+if TYPE_CHECKING:          # (annotations only: trimesh is imported where it is used)
+    import trimesh
 
 TREE_ROW_SPACING_M = 8.0
 WOOD_M2_PER_TREE = 150.0

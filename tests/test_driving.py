@@ -1055,3 +1055,110 @@ def test_a_car_on_a_bridge_is_mirrored_on_its_deck_not_on_the_ground(monaco):
         assert mirrored("25103769#2_1") < ground + 2.0
     finally:
         sim.teardown()
+
+
+def test_a_car_on_another_level_is_no_obstacle(monaco):
+    """A car on a bridge's deck crossing over the path, or on the road under a deck the path
+    goes over, is on another level: no lead (Monaco, seed 13: the car stopped for a car on
+    Boulevard du Larvotto's bridge passing over Avenue Princesse Grace); the same car at
+    grade, or on the same deck, is one. The mirror does not hold a car on the deck over the
+    ego (held only where it would overlap the ego at its height)."""
+    import pybullet as pb
+
+    from cosim.driving import LanePath
+    from cosim.traffic import ActorsSnapshot
+    from cosim.vehicle import VehicleState
+
+    sim = start_sim(monaco)
+    try:
+        s, ap = sim.traffic.sumo, sim.driver
+        deck = "503783368_0"
+        D = np.array(s.lane.getShape(deck))[:, :2]
+        dd = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(D, axis=0).T))])
+        # where the avenue's turn through junction 273246212 passes under the deck
+        via = np.array(s.lane.getShape(":273246212_1_0"))[:, :2]
+        k = int(np.argmin(((D[:, None, :] - via[None, :, :]) ** 2).sum(axis=2).min(axis=1)))
+
+        def on_deck(back):              # a point of the deck lane `back` m before its vertex k
+            a = max(0.0, dd[k] - back)
+            p = np.array([np.interp(a, dd, D[:, 0]), np.interp(a, dd, D[:, 1])])
+            q = np.array([np.interp(a + 1, dd, D[:, 0]), np.interp(a + 1, dd, D[:, 1])])
+            return p, float(np.arctan2(*(q - p)[::-1]))
+
+        def snap_of(p, h, lane, speed=16.0):
+            one = lambda v: np.array([v])         # noqa: E731
+            return ActorsSnapshot(0.0, np.array(["b1"], dtype=object), np.array(["passenger"], dtype=object),
+                                  one(p[0]), one(p[1]), one(h), one(4.5), one(1.8), one(1.5), one(speed),
+                                  one(0.0), np.array([lane], dtype=object))
+
+        def state(path, s_ego, z=0.0, v=8.0):
+            (x, y), h = path.point_at(s_ego), path.heading_at(s_ego)
+            return VehicleState(float(x), float(y), z, 0.0, 0.0, h, v, (v * np.cos(h), v * np.sin(h), 0.0),
+                                0.0, 0.0, (True,) * 4)
+
+        # 1. the path on the ground, under the deck; a car on the deck, up to 20 m before it
+        # crosses over the path, is timed as a crossing car unless its level is known
+        under = LanePath(s, ["25103769#2", "353889280"])
+        sim.path = under
+        ap._new_path(under)
+        _, s_x, _ = under.project(*on_deck(0)[0], 0)
+        st = state(under, max(0.0, s_x - 12.0))
+        for back in (5.0, 20.0):
+            p, h = on_deck(back)
+            up = snap_of(p, h, deck)
+            sim.mirror.update(up)
+            assert sim.mirror.raised["b1"] > 4.0        # on the deck, over the terrain
+            assert ap._actors_on_path(up, st, st_s(under, st), under) is not None   # (the level unknown)
+            assert len(ap._same_level(up, under, st_s(under, st))) == 0
+            ground = snap_of(p, h, "25103769#2_1")
+            sim.mirror.update(ground)
+            assert not sim.mirror.raised
+            assert len(ap._same_level(ground, under, st_s(under, st))) == 1
+        # the mirror holds a car at the ego's height where it would overlap the ego, not one on
+        # the deck over it
+        p, h = on_deck(0)
+        ego_at = (float(p[0]), float(p[1]), h + 1.2, 4.5, 1.8)
+        ground_z = float(sim.world.ground_z([p[0]], [p[1]])[0])
+        sim.mirror.update(snap_of(p - 8.0 * np.array([np.cos(h), np.sin(h)]), h, deck))
+        sim.mirror.update(snap_of(p, h, deck), ego=ego_at + (ground_z,))
+        assert "b1" not in sim.mirror.held_at
+        z_deck = pb.getBasePositionAndOrientation(sim.mirror.body_of("b1"), physicsClientId=sim.physics.client)[0][2]
+        assert z_deck > ground_z + 3.0
+        sim.mirror.update(snap_of(p - 8.0 * np.array([np.cos(h), np.sin(h)]), h, deck))
+        sim.mirror.update(snap_of(p, h, deck), ego=ego_at + (z_deck - 0.75,))
+        assert "b1" in sim.mirror.held_at
+        # (a car on the ground beside an ego on a road 2.5 m over the terrain, a deck's ramp, is
+        # held: Monaco, seed 13, a truck was not and went through the car)
+        sim.mirror.update(snap_of(p - 8.0 * np.array([np.cos(h), np.sin(h)]), h, "25103769#2_1"))
+        sim.mirror.update(snap_of(p, h, "25103769#2_1"), ego=ego_at + (ground_z + 2.5,))
+        assert "b1" in sim.mirror.held_at
+
+        # 2. the path on the deck: a car on the avenue's turn under it is on another level, a car
+        # ahead on the deck is the lead
+        over = LanePath(s, ["503783368"])
+        sim.path = over
+        ap._new_path(over)
+        assert ap._path_bridge is not None
+        s_over = over.project(*on_deck(0)[0], 0)[1]
+        st = state(over, s_over - 25.0)
+        vx = via[len(via) // 2]
+        vh = float(np.arctan2(*(via[len(via) // 2 + 1] - vx)[::-1]))
+        below = snap_of(vx, vh, ":273246212_1_0", speed=0.0)
+        sim.mirror.update(below)
+        assert not sim.mirror.raised
+        assert len(ap._same_level(below, over, s_over - 25.0)) == 0
+        person = snap_of(vx, vh, "", speed=1.2)         # (a person's level is not known: kept)
+        person.kind[0] = "person"
+        assert len(ap._same_level(person, over, s_over - 25.0)) == 1
+        p, h = on_deck(0)
+        ahead = snap_of(p, h, deck, speed=0.0)
+        sim.mirror.update(ahead)
+        assert len(ap._same_level(ahead, over, s_over - 25.0)) == 1
+        lead = ap._actors_on_path(ahead, st, s_over - 25.0, over)
+        assert lead is not None and lead.actor == "b1"
+    finally:
+        sim.teardown()
+
+
+def st_s(path, st) -> float:
+    return float(path.project(st.x, st.y, 0)[1])
