@@ -246,6 +246,7 @@ FOLLOWER_LOOK_M = 100.0     # how far behind a carried vehicle its follower is l
 # the ego's body reaching this far into a neighbouring lane makes that lane's follower (within
 # STRADDLE_LOOK_M) keep STRADDLE_GAP_M behind it (_straddle_yield)
 STRADDLE_M = 0.3
+STRADDLE_AHEAD_S = 1.0     # ... or will reach, going on sideways as it moves now for this long
 STRADDLE_LOOK_M = 60.0
 STRADDLE_GAP_M = 2.0
 SWAP_ROOM_MARGIN_M = 20.0    # the new SUMO's own actors this far beyond the kept ones make room
@@ -335,6 +336,7 @@ class SumoTraffic(Component):
         self._vclass_cache: dict[str, tuple[str, float, float, float]] = {}
         self._held: dict[str, float] = {}  # pedestrians stopped for the ego: id -> their own pace
         self._straddle_held: set = set()    # vehicles kept behind an ego that straddles their lane
+        self._straddle_lat: tuple = ("", 0.0)   # the ego's lane and lateral position at the last step
         self._lane_widths: dict = {}
         self._ego_ctx_res: dict | None = None  # this step's context results (_ego_context)
         self._moved_persons: dict = {}     # persons a swap placed by moveToXY: id -> (x, y, speed)
@@ -673,8 +675,9 @@ class SumoTraffic(Component):
 
     def _straddle_yield(self) -> None:
         """SUMO's drivers see the ego only in the lane SUMO maps it to (without the sublane
-        model). While the ego's body reaches STRADDLE_M or more into a neighbouring lane (its
-        lane path blends from one lane to the next over an edge), the follower in that lane
+        model). While the ego's body reaches STRADDLE_M or more into a neighbouring lane, or
+        will within STRADDLE_AHEAD_S at its sideways speed (its lane path blends from one lane
+        to the next over an edge, or from a junction lane), the follower in that lane
         keeps STRADDLE_GAP_M behind it (``setSpeed`` down to what stops it there at
         EGO_INSERT_DECEL, released after): else, once ``moveToXY`` maps the ego over into that
         lane mid-blend, it lands on a car beside it (Lauf, seeds 4 and 5: SUMO counted the car
@@ -685,19 +688,25 @@ class SumoTraffic(Component):
         if self._ego_in_sim and not self._ego_off_network:
             try:
                 lane = self._ego_lane()
-                if lane and not lane.startswith(":"):
+                if lane:
                     lat = s.vehicle.getLateralLanePosition(EGO_ID)
             except self._exc:
                 lane = ""
-        if lane and not lane.startswith(":"):
+        if lane:
             w = self._lane_widths.get(lane)
             if w is None:
                 w = self._lane_widths[lane] = float(s.lane.getWidth(lane))
             half = self._ego_spec["width"] / 2.0
+            # where the body will be: the ego blending over into the next lane moves sideways at
+            # about 1 m/s (Portland, seed 12: blending from a junction lane into the lane beside
+            # it, the follower coming up there at 4 m/s faster was held only 0.3 s before it hit)
+            prev_lane, prev_lat = self._straddle_lat
+            v_lat = (lat - prev_lat) / self.step_length if prev_lane == lane else 0.0
+            ahead = lat + v_lat * STRADDLE_AHEAD_S
             sides = []
-            if lat + half > w / 2.0 + STRADDLE_M:
+            if max(lat, ahead) + half > w / 2.0 + STRADDLE_M:
                 sides.append(s.vehicle.getLeftFollowers)
-            if lat - half < -w / 2.0 - STRADDLE_M:
+            if min(lat, ahead) - half < -w / 2.0 - STRADDLE_M:
                 sides.append(s.vehicle.getRightFollowers)
             v_ego = self._ego_pending_speed or 0.0
             for followers in sides:
@@ -723,6 +732,7 @@ class SumoTraffic(Component):
             except self._exc:
                 pass                                 # arrived or gone
         self._straddle_held = held
+        self._straddle_lat = (lane, lat if lane else 0.0)
 
     # --- ego ----------------------------------------------------------------------------
     def add_ego(self, route_edges: Sequence[str] | None = None, from_edge: str | None = None,

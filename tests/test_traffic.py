@@ -942,3 +942,55 @@ def test_a_follower_in_the_lane_the_ego_straddles_into_keeps_behind_it(traffic, 
         assert slowest < 3.0 and s.vehicle.getLanePosition("chaser") < s.vehicle.getLanePosition(EGO_ID) - 4.5
     else:       # (the scenario is one where it matters)
         assert t.stats.collisions >= 1
+
+
+def test_a_follower_is_held_as_the_ego_starts_moving_over_into_its_lane(traffic):
+    """The ego blending into the next lane moves sideways at about 1 m/s: the follower in that
+    lane is held from when the ego's body will reach into the lane within a second, not only
+    once it is 0.3 m in (Portland, seed 12: a car 4 m/s faster, coming up in the lane the ego
+    blended into from a junction lane, was held 0.3 s before SUMO counted a collision); an ego
+    keeping its lane 0.3 m off-centre holds no one."""
+    from cosim.traffic import STRADDLE_M
+
+    t = traffic(seed=2)
+    s = t.sumo
+
+    def car(lane):
+        allowed = s.lane.getAllowed(lane)
+        return "passenger" in allowed if allowed else "passenger" not in s.lane.getDisallowed(lane)
+
+    edge, idx = next((e, i) for e in s.edge.getIDList() if not e.startswith(":")
+                     for i in range(s.edge.getLaneNumber(e) - 1)
+                     if car(f"{e}_{i}") and car(f"{e}_{i + 1}") and s.lane.getLength(f"{e}_{i}") > 100.0)
+    w = s.lane.getWidth(f"{edge}_{idx}")
+    s.route.add("r_over", [edge])
+    s.vehicle.add("chaser", "r_over", typeID="DEFAULT_VEHTYPE", depart="now", departPos="25",
+                  departSpeed="12", departLane=str(idx + 1))
+    t.step()
+    t.add_ego([edge])
+
+    def pose(front_pos, left):
+        x, y = s.simulation.convert2D(edge, front_pos, idx)
+        x2, y2 = s.simulation.convert2D(edge, front_pos + 1.0, idx)
+        yaw = math.atan2(y2 - y, x2 - x)
+        return x - left * math.sin(yaw) - 2.25 * math.cos(yaw), y + left * math.cos(yaw) - 2.25 * math.sin(yaw), yaw
+
+    front = 40.0
+    for _ in range(5):                      # in its lane, 0.3 m left of its centre
+        t.set_ego_pose(*pose(front, 0.3), 5.0)
+        t.step()
+        front += 0.5
+        assert "chaser" not in t._straddle_held
+    first = None
+    for k in range(12):                     # moving over at 1 m/s
+        left = 0.3 + 0.1 * (k + 1)
+        t.set_ego_pose(*pose(front, left), 5.0)
+        t.step()
+        front += 0.5
+        if first is None and "chaser" in t._straddle_held:
+            first = left
+    # held before the body reaches STRADDLE_M into the lane (its edge at left + 0.9 m), and
+    # kept behind the ego
+    assert first is not None and first + 0.9 < w / 2.0 + STRADDLE_M, (first, w)
+    assert s.vehicle.getLanePosition("chaser") < s.vehicle.getLanePosition(EGO_ID) - 4.5
+    assert t.stats.collisions == 0
