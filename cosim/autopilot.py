@@ -80,6 +80,7 @@ NEAR_MISS_TTC_S = 1.5
 NEAR_MISS_GAP_M = 2.0
 SENSE_RANGE_M = 80.0       # obstacles on the path are considered up to here
 LEVEL_M = 4.0              # a deck this high over the terrain is another level than the road under it
+LEVEL_REACH_M = 40.0       # ... looked at for actors this near (in x and y) where the path is up there
 CROSS_LANE_MARGIN_M = 3.5  # a crossing vehicle's road may have a lane nearer than its own
 LANE_CONFLICT_MARGIN_M = 0.5  # a junction lane over the path: clear of the two bodies by this
 ROLLBACK_MPS = 0.3           # moving backwards this fast while driving forward: brakes (control)
@@ -201,7 +202,7 @@ class Autopilot:
         self._path_lanes: set = set()     # the lanes of the path
         self._path_junctions: set = set()  # the junctions it goes through
         self._path_bridge = None          # per path point: on a bridge's lane (None: no bridge)
-        self._path_rises: dict = {}       # path point -> how high it stands over the terrain (_path_rise)
+        self._path_rises = None           # per path point: how high it stands over the terrain (_path_rises_at)
         self._path_edges: set = set()     # the edges of the path
         self._net_generation = getattr(getattr(sim, "traffic", None), "_generation", 0)
         self._near_miss_until = -1.0
@@ -350,7 +351,7 @@ class Autopilot:
         bridges = world.bridge_lanes() if world is not None and hasattr(world, "bridge_lanes") else ()
         on = np.array([ln in bridges for ln, _ in path.lane_of], dtype=bool) if bridges else None
         self._path_bridge = on if on is not None and on.any() else None
-        self._path_rises = {}
+        self._path_rises = None
         self._path_edges = {e for _, e in path.lane_of}
 
     def _same_level(self, actors, path, s_here: float):
@@ -359,8 +360,8 @@ class Autopilot:
         it stands over the terrain (``ActorMirror.raised``: on a deck, else 0); the path's, where
         the actor would meet it (its projection), how high the path's lane is there over the
         terrain (a bridge's lane, else 0); they are other levels more than LEVEL_M apart.
-        Actors on the path's roads, persons and vehicles on no known lane are kept. Such a car crossing the path is no lead, foe or
-        obstacle (Monaco, seed 13: the car stopped for cars passing over it on Boulevard du
+        Actors on the path's roads, persons and vehicles on no known lane are kept. Such a car
+        crossing the path is no lead, foe or obstacle (Monaco, seed 13: the car stopped for cars passing over it on Boulevard du
         Larvotto's bridge). The actors as they are where no actor stands on a deck and the
         path has no bridge near."""
         raised = getattr(getattr(self.sim, "mirror", None), "raised", None) or {}
@@ -369,35 +370,47 @@ class Autopilot:
         if not n:
             return actors
         s0, s1 = s_here - 20.0, s_here + SENSE_RANGE_M + 40.0
+        up = None                   # the path's points ahead on a deck more than LEVEL_M up
         if bridge is not None:
             i0, i1 = path.index_at(s0), path.index_at(s1) + 1
-            if not bridge[i0:i1].any():
-                bridge = None
-        if not raised and bridge is None:
+            on = i0 + np.flatnonzero(bridge[i0:i1])
+            if len(on):
+                up = on[self._path_rises_at(path, on) > LEVEL_M]
+                if not len(up):
+                    up = None
+        if not raised and up is None:
             return actors
-        if bridge is None:          # only raised actors can be on another level
-            cand = np.array([a in raised for a in actors.ids.tolist()], dtype=bool)
-            cand = np.flatnonzero(cand)
-        else:
-            cand = np.arange(n)
+        is_raised = np.array([a in raised for a in actors.ids.tolist()], dtype=bool) if raised \
+            else np.zeros(n, dtype=bool)
+        if up is None:              # only raised actors can be on another level
+            cand = np.flatnonzero(is_raised)
+        else:                       # ... and those that can meet the path where it is up
+            P = path.xy[up]
+            lo, hi = P.min(axis=0) - LEVEL_REACH_M, P.max(axis=0) + LEVEL_REACH_M
+            near = (actors.x >= lo[0]) & (actors.x <= hi[0]) & (actors.y >= lo[1]) & (actors.y <= hi[1])
+            cand = np.flatnonzero(near | is_raised)
         lanes = getattr(actors, "lane", None)
         if lanes is None:
             return actors
         if len(cand):
-            # (a person's level is not known: persons on a bridge's footway stand on the
-            # terrain in this world, and are kept; so is a vehicle on no known lane)
+            # (persons are kept: one on a walking area or crossing on a deck, no bridge's lane,
+            # stands on the terrain in this world; so is a vehicle on no known lane)
             edges = self._path_edges
-            cand = cand[[bool(ln) and ln.rsplit("_", 1)[0] not in edges for ln in lanes[cand].tolist()]]
+            cand = cand[[bool(ln) and k != "person" and ln.rsplit("_", 1)[0] not in edges
+                         for ln, k in zip(lanes[cand].tolist(), actors.kind[cand].tolist())]]
         if not len(cand):
             return actors
-        s, _ = path.project_many(actors.x[cand], actors.y[cand], s0, s1)
-        ok = np.isfinite(s)
+        if up is None:              # (the path is on the ground ahead: each one raised is up there)
+            s, ok = None, np.ones(len(cand), dtype=bool)
+        else:
+            s, _ = path.project_many(actors.x[cand], actors.y[cand], s0, s1)
+            ok = np.isfinite(s)
         h_actor = np.array([raised.get(a, 0.0) for a in actors.ids[cand].tolist()])
         h_path = np.zeros(len(cand))
-        if bridge is not None:
+        if up is not None:
             idx = np.clip(np.searchsorted(path.s, np.where(ok, s, 0.0), side="right") - 1, 0, len(path.s) - 1)
-            for k in np.flatnonzero(ok & self._path_bridge[idx]).tolist():
-                h_path[k] = self._path_rise(path, int(idx[k]))
+            at = np.flatnonzero(ok & self._path_bridge[idx])
+            h_path[at] = self._path_rises_at(path, idx[at])
         other = cand[ok & (np.abs(h_actor - h_path) > LEVEL_M)]
         if not len(other):
             return actors
@@ -405,16 +418,24 @@ class Autopilot:
         keep[other] = False
         return actors.subset(keep)
 
-    def _path_rise(self, path, i: int) -> float:
-        """How high the path's point `i` (on a bridge's lane) stands over the terrain: the
+    def _path_rises_at(self, path, idx: np.ndarray) -> np.ndarray:
+        """How high the path's points `idx` (on a bridge's lane) stand over the terrain: the
         highest road surface there less the terrain's height (0 where unknown; cached)."""
-        got = self._path_rises.get(i)
-        if got is None:
+        rises = self._path_rises
+        if rises is None or len(rises) != len(path.xy):
+            rises = self._path_rises = np.full(len(path.xy), np.nan)
+        new = idx[np.isnan(rises[idx])]
+        if len(new):
+            # (with the bridge's points up to 200 further on: one call for a stretch of them)
+            hi = min(len(rises), int(new.max()) + 200)
+            more = int(new.max()) + 1 + np.flatnonzero(self._path_bridge[int(new.max()) + 1:hi]
+                                                       & np.isnan(rises[int(new.max()) + 1:hi]))
+            new = np.concatenate((new, more))
             world = self.sim.world
-            x, y = path.xy[i]
-            r = float(world.road_top_z([x], [y])[0] - world.ground_z([x], [y])[0])
-            got = self._path_rises[i] = r if math.isfinite(r) and r > 0.0 else 0.0
-        return got
+            x, y = path.xy[new, 0], path.xy[new, 1]
+            r = world.road_top_z(x, y) - world.ground_z(x, y)
+            rises[new] = np.where(np.isfinite(r) & (r > 0.0), r, 0.0)
+        return rises[idx]
 
     def _world_edge(self, path, s_here, horizon):
         """Arc length of the first path point ahead outside the built chunks, or None."""
@@ -563,7 +584,7 @@ class Autopilot:
                 reads.append((lane_p + ("getInternalFoes",), (lane,)))
         lanes = getattr(actors, "lane", None)
         if lanes is not None:
-            for ln in set(lanes.tolist()):
+            for ln in set(lanes[actors.kind != "person"].tolist()):
                 if ln and not ln.startswith(":"):
                     e = ln.rsplit("_", 1)[0]
                     reads += [(edge_p + ("getToJunction",), (e,)), (edge_p + ("getFromJunction",), (e,))]

@@ -183,7 +183,7 @@ class ActorsSnapshot:
     height: np.ndarray
     speed: np.ndarray      # m/s
     slope: np.ndarray      # degrees, positive uphill (pitch)
-    lane: np.ndarray | None = None   # str: SUMO lane id of a vehicle ("" for persons); None: unknown
+    lane: np.ndarray | None = None   # str: SUMO lane id ("" where not known); None: unknown
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -204,8 +204,8 @@ class ActorsSnapshot:
                               None if self.lane is None else self.lane[keep])
 
     def above_ground(self, tunnels) -> "ActorsSnapshot":
-        """Without the vehicles on a lane of a tunnel edge (``tunnels``: edge ids): they
-        drive under the ground, where the world has nothing (persons have no lane here)."""
+        """Without the actors on a lane of a tunnel edge (``tunnels``: edge ids): they drive
+        or walk under the ground, where the world has nothing."""
         if not tunnels or self.lane is None or not len(self.ids):
             return self
         keep = np.fromiter((not ln or ln[:ln.rfind("_")] not in tunnels for ln in self.lane.tolist()),
@@ -907,7 +907,7 @@ class SumoTraffic(Component):
         # domains' results arrive in one dict keyed by object id. Sizes come from the person's
         # type (libsumo files a person context's VAR_LENGTH under the type id, not the person)
         return [tc.VAR_POSITION, tc.VAR_ANGLE, tc.VAR_SPEED, tc.VAR_VEHICLE, tc.VAR_TYPE,
-                tc.VAR_SLOPE]
+                tc.VAR_SLOPE, tc.VAR_LANE_ID]
 
     def _vtype_info(self, type_id: str, vehicle: str) -> tuple[str, float, float, float]:
         """(vehicle class, length, width, height) of a vehicle type, cached; the vehicle's own
@@ -1048,7 +1048,7 @@ class SumoTraffic(Component):
                 if v[VEH]:
                     continue                 # riding: drawn as part of the vehicle
                 kind.append("person")
-                lanes.append("")
+                lanes.append(v.get(LANE, ""))    # (a sidewalk, walking area or crossing)
                 length, width, height = self._type_dims(v[TYPE], aid)
             else:
                 vclass, length, width, height = self._vtype_info(v[TYPE], aid)

@@ -126,8 +126,10 @@ class World:
         y = np.atleast_1d(np.asarray(y, dtype=float))
         out = np.full(x.shape, np.nan)
         trees = self.__dict__.setdefault("_asphalt_trees", {})
-        for k in range(len(x)):
-            key = self.tile_of(float(x[k]), float(y[k]))
+        by_tile: dict = {}
+        for k, (xk, yk) in enumerate(zip(x.tolist(), y.tolist())):
+            by_tile.setdefault(self.tile_of(xk, yk), []).append(k)
+        for key, ks in by_tile.items():
             got = trees.get(key)
             if got is None:
                 f = self.tile_files(key).get("asphalt")
@@ -137,9 +139,9 @@ class World:
                 got = trees[key] = (cKDTree(v[:, :2]) if len(v) else None, v[:, 2])
             tree, z = got
             if tree is not None:
-                near = tree.query_ball_point((x[k], y[k]), r)
-                if near:
-                    out[k] = float(z[near].max())
+                for k, near in zip(ks, tree.query_ball_point(np.column_stack((x[ks], y[ks])), r)):
+                    if near:
+                        out[k] = float(z[near].max())
         return out
 
     def slope_pitch(self, x, y, yaw, d: float = 1.5) -> np.ndarray:

@@ -1053,6 +1053,21 @@ def test_a_car_on_a_bridge_is_mirrored_on_its_deck_not_on_the_ground(monaco):
 
         assert mirrored(lane) > ground + 3.0
         assert mirrored("25103769#2_1") < ground + 2.0
+        # a person on a footbridge's lane (SUMO gives persons' lanes too) stands on its deck
+        foot = "-93137606_0"
+        assert foot in sim.world.bridge_lanes()
+        F = np.array(sim.traffic.sumo.lane.getShape(foot))[:, :2]
+        fd = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(F, axis=0).T))])
+        fs = np.arange(0.0, fd[-1], 2.0)
+        FX, FY = np.interp(fs, fd, F[:, 0]), np.interp(fs, fd, F[:, 1])
+        k = int(np.nanargmax(sim.world.road_top_z(FX, FY) - sim.world.ground_z(FX, FY)))
+        walker = ActorsSnapshot(0.0, np.array(["p1"], dtype=object), np.array(["person"], dtype=object),
+                                one(FX[k]), one(FY[k]), one(0.0), one(0.5), one(0.5), one(1.75), one(1.2),
+                                one(0.0), np.array([foot], dtype=object))
+        sim.mirror.update(walker)
+        z_p = pb.getBasePositionAndOrientation(sim.mirror.body_of("p1"), physicsClientId=sim.physics.client)[0][2]
+        assert z_p > float(sim.world.ground_z([FX[k]], [FY[k]])[0]) + 3.0
+        assert sim.mirror.raised["p1"] > 3.0
     finally:
         sim.teardown()
 

@@ -416,6 +416,13 @@ def test_actors_near_radius_and_centres(dense, traffic):
         x, y = front_to_center(*s.vehicle.getPosition(v), s.vehicle.getAngle(v),
                                s.vehicle.getLength(v))
         assert (math.hypot(x - cx, y - cy) <= radius) == (v in snap.ids), v
+    # each actor's lane, persons' too (a sidewalk, walking area or crossing: the mirror puts
+    # one on a bridge's footway on its deck)
+    persons = [a for a, k in zip(snap.ids, snap.kind) if k == "person"]
+    assert persons
+    for aid, k, ln in zip(snap.ids, snap.kind, snap.lane):
+        assert ln == (s.person.getLaneID(aid) if k == "person" else s.vehicle.getLaneID(aid)), aid
+    assert all(snap.lane[snap.index(a)] for a in persons)
     # centre conversion against SUMO's getters for a known vehicle
     veh = [i for i, k in zip(snap.ids, snap.kind) if k != "person"]
     assert veh
