@@ -1019,6 +1019,18 @@ def test_the_sweep_leaves_out_a_car_queued_just_behind(helsinki):
         sim.teardown()
 
 
+def _highest_deck_point(sim, lane: str):
+    """The point of `lane` (every 2 m) where the road surface stands highest over the terrain:
+    (x, y, rise, the lane's shape, its arc lengths, the sample's arc length)."""
+    P = np.array(sim.traffic.sumo.lane.getShape(lane))[:, :2]
+    d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(P, axis=0).T))])
+    ss = np.arange(0.0, d[-1], 2.0)
+    X, Y = np.interp(ss, d, P[:, 0]), np.interp(ss, d, P[:, 1])
+    rise = sim.world.road_top_z(X, Y) - sim.world.ground_z(X, Y)
+    k = int(np.nanargmax(rise))
+    return float(X[k]), float(Y[k]), float(rise[k]), P, d, float(ss[k])
+
+
 def test_a_car_on_a_bridge_is_mirrored_on_its_deck_not_on_the_ground(monaco):
     """A vehicle on a bridge's lane (OSM bridge=*) stands on the deck, not on the terrain under
     it (Monaco, seed 13: a car on Boulevard du Larvotto's bridge, mirrored 5 m down on the
@@ -1032,15 +1044,9 @@ def test_a_car_on_a_bridge_is_mirrored_on_its_deck_not_on_the_ground(monaco):
     try:
         lane = "503783368_0"
         assert lane in sim.world.bridge_lanes()
-        P = np.array(sim.traffic.sumo.lane.getShape(lane))[:, :2]
-        d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(P, axis=0).T))])
-        ss = np.arange(0.0, d[-1], 2.0)
-        X, Y = np.interp(ss, d, P[:, 0]), np.interp(ss, d, P[:, 1])
-        rise = sim.world.road_top_z(X, Y) - sim.world.ground_z(X, Y)
-        k = int(np.nanargmax(rise))
-        assert rise[k] > 3.0                      # the deck stands over the ground here
-        x, y = float(X[k]), float(Y[k])
-        h = float(np.arctan2(*(P[min(len(P) - 1, int(np.searchsorted(d, ss[k])))] - P[max(0, int(np.searchsorted(d, ss[k])) - 1)])[::-1]))
+        x, y, rise, P, d, sk = _highest_deck_point(sim, lane)
+        assert rise > 3.0                         # the deck stands over the ground here
+        h = float(np.arctan2(*(P[min(len(P) - 1, int(np.searchsorted(d, sk)))] - P[max(0, int(np.searchsorted(d, sk)) - 1)])[::-1]))
         one = lambda v: np.array([v])             # noqa: E731
         ground = float(sim.world.ground_z([x], [y])[0])
 
@@ -1056,17 +1062,13 @@ def test_a_car_on_a_bridge_is_mirrored_on_its_deck_not_on_the_ground(monaco):
         # a person on a footbridge's lane (SUMO gives persons' lanes too) stands on its deck
         foot = "-93137606_0"
         assert foot in sim.world.bridge_lanes()
-        F = np.array(sim.traffic.sumo.lane.getShape(foot))[:, :2]
-        fd = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(F, axis=0).T))])
-        fs = np.arange(0.0, fd[-1], 2.0)
-        FX, FY = np.interp(fs, fd, F[:, 0]), np.interp(fs, fd, F[:, 1])
-        k = int(np.nanargmax(sim.world.road_top_z(FX, FY) - sim.world.ground_z(FX, FY)))
+        fx, fy, _, _, _, _ = _highest_deck_point(sim, foot)
         walker = ActorsSnapshot(0.0, np.array(["p1"], dtype=object), np.array(["person"], dtype=object),
-                                one(FX[k]), one(FY[k]), one(0.0), one(0.5), one(0.5), one(1.75), one(1.2),
+                                one(fx), one(fy), one(0.0), one(0.5), one(0.5), one(1.75), one(1.2),
                                 one(0.0), np.array([foot], dtype=object))
         sim.mirror.update(walker)
         z_p = pb.getBasePositionAndOrientation(sim.mirror.body_of("p1"), physicsClientId=sim.physics.client)[0][2]
-        assert z_p > float(sim.world.ground_z([FX[k]], [FY[k]])[0]) + 3.0
+        assert z_p > float(sim.world.ground_z([fx], [fy])[0]) + 3.0
         assert sim.mirror.raised["p1"] > 3.0
     finally:
         sim.teardown()

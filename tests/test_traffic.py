@@ -903,6 +903,39 @@ def test_sumo_vehicles_where_the_ego_goes_in_are_removed(traffic, blocker_in):
     assert t.stats.collisions == 0
 
 
+def _two_lane_edge(s):
+    """(edge, lane index i): the first edge over 100 m long where cars may use lanes i and i + 1."""
+    def car(lane):
+        allowed = s.lane.getAllowed(lane)
+        return "passenger" in allowed if allowed else "passenger" not in s.lane.getDisallowed(lane)
+
+    return next((e, i) for e in s.edge.getIDList() if not e.startswith(":")
+                for i in range(s.edge.getLaneNumber(e) - 1)
+                if car(f"{e}_{i}") and car(f"{e}_{i + 1}") and s.lane.getLength(f"{e}_{i}") > 100.0)
+
+
+def _pose_beside(s, edge, idx, front_pos, left):
+    """A 4.5 m car's centre and yaw: its front `front_pos` m along lane idx of `edge`, `left` m
+    to the lane's left."""
+    x, y = s.simulation.convert2D(edge, front_pos, idx)
+    x2, y2 = s.simulation.convert2D(edge, front_pos + 1.0, idx)
+    yaw = math.atan2(y2 - y, x2 - x)
+    return x - left * math.sin(yaw) - 2.25 * math.cos(yaw), y + left * math.cos(yaw) - 2.25 * math.sin(yaw), yaw
+
+
+def _ego_and_chaser(t, depart_pos: float, depart_speed: float):
+    """On an edge with two car lanes: a car "chaser" in the left one `depart_pos` m along it at
+    `depart_speed`, and the ego added on the edge. Returns (edge, lane index, pose(front, left))."""
+    s = t.sumo
+    edge, idx = _two_lane_edge(s)
+    s.route.add("r_chaser", [edge])
+    s.vehicle.add("chaser", "r_chaser", typeID="DEFAULT_VEHTYPE", depart="now", departPos=str(depart_pos),
+                  departSpeed=str(depart_speed), departLane=str(idx + 1))
+    t.step()
+    t.add_ego([edge])
+    return edge, idx, (lambda front_pos, left: _pose_beside(s, edge, idx, front_pos, left))
+
+
 @pytest.mark.parametrize("yield_", [True, False])
 def test_a_follower_in_the_lane_the_ego_straddles_into_keeps_behind_it(traffic, monkeypatch, yield_):
     """Without the sublane model SUMO's drivers see the ego only in the lane it is mapped to.
@@ -915,25 +948,7 @@ def test_a_follower_in_the_lane_the_ego_straddles_into_keeps_behind_it(traffic, 
     t = traffic(seed=2)
     s = t.sumo
 
-    def car(lane):
-        allowed = s.lane.getAllowed(lane)
-        return "passenger" in allowed if allowed else "passenger" not in s.lane.getDisallowed(lane)
-
-    edge, idx = next((e, i) for e in s.edge.getIDList() if not e.startswith(":")
-                     for i in range(s.edge.getLaneNumber(e) - 1)
-                     if car(f"{e}_{i}") and car(f"{e}_{i + 1}") and s.lane.getLength(f"{e}_{i}") > 100.0)
-    s.route.add("r_straddle", [edge])
-    s.vehicle.add("chaser", "r_straddle", typeID="DEFAULT_VEHTYPE", depart="now", departPos="10",
-                  departSpeed="10", departLane=str(idx + 1))
-    t.step()
-    t.add_ego([edge])
-
-    def pose(front_pos, left):
-        """The ego's centre and yaw: its front `front_pos` m along lane idx, `left` m to its left."""
-        x, y = s.simulation.convert2D(edge, front_pos, idx)
-        x2, y2 = s.simulation.convert2D(edge, front_pos + 1.0, idx)
-        yaw = math.atan2(y2 - y, x2 - x)
-        return x - left * math.sin(yaw) - 2.25 * math.cos(yaw), y + left * math.cos(yaw) - 2.25 * math.sin(yaw), yaw
+    edge, idx, pose = _ego_and_chaser(t, 10, 10)
 
     front, slowest = 45.0, 99.0
     for k in range(60):
@@ -962,25 +977,8 @@ def test_a_follower_is_held_as_the_ego_starts_moving_over_into_its_lane(traffic)
     t = traffic(seed=2)
     s = t.sumo
 
-    def car(lane):
-        allowed = s.lane.getAllowed(lane)
-        return "passenger" in allowed if allowed else "passenger" not in s.lane.getDisallowed(lane)
-
-    edge, idx = next((e, i) for e in s.edge.getIDList() if not e.startswith(":")
-                     for i in range(s.edge.getLaneNumber(e) - 1)
-                     if car(f"{e}_{i}") and car(f"{e}_{i + 1}") and s.lane.getLength(f"{e}_{i}") > 100.0)
+    edge, idx, pose = _ego_and_chaser(t, 25, 12)
     w = s.lane.getWidth(f"{edge}_{idx}")
-    s.route.add("r_over", [edge])
-    s.vehicle.add("chaser", "r_over", typeID="DEFAULT_VEHTYPE", depart="now", departPos="25",
-                  departSpeed="12", departLane=str(idx + 1))
-    t.step()
-    t.add_ego([edge])
-
-    def pose(front_pos, left):
-        x, y = s.simulation.convert2D(edge, front_pos, idx)
-        x2, y2 = s.simulation.convert2D(edge, front_pos + 1.0, idx)
-        yaw = math.atan2(y2 - y, x2 - x)
-        return x - left * math.sin(yaw) - 2.25 * math.cos(yaw), y + left * math.cos(yaw) - 2.25 * math.sin(yaw), yaw
 
     front = 40.0
     for _ in range(5):                      # in its lane, 0.3 m left of its centre
