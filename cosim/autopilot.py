@@ -79,6 +79,7 @@ YIELD_GIVE_UP_S = 40.0     # after waiting this long at a yield, go when nothing
 NEAR_MISS_TTC_S = 1.5
 NEAR_MISS_GAP_M = 2.0
 SENSE_RANGE_M = 80.0       # obstacles on the path are considered up to here
+STANDOFF_S = 20.0          # the car and a vehicle in its sweep both standing this long: a standoff
 LEVEL_M = 4.0              # a deck this high over the terrain is another level than the road under it
 LEVEL_REACH_M = 40.0       # ... looked at for actors this near (in x and y) where the path is up there
 CROSS_LANE_MARGIN_M = 3.5  # a crossing vehicle's road may have a lane nearer than its own
@@ -136,6 +137,7 @@ class DrivingStats:
     pedestrian_yields: int = 0
     sweeps: int = 0          # times the car's sweep found something beside the path corridor (_sweep)
     rollbacks: int = 0       # times the car rolled back (ROLLBACK_MPS) against the throttle
+    standoffs: int = 0       # vehicles taken out of SUMO after a standoff with the car (_standoff)
     time_gaps: list = field(default_factory=list, repr=False)   # steady following samples, s
     events: list = field(default_factory=list, repr=False)      # (t, kind, detail)
 
@@ -144,7 +146,8 @@ class DrivingStats:
         return {"near_misses": self.near_misses, "stops": self.stops, "min_ttc_s": round(self.min_ttc_s, 2),
                 "min_gap_moving_m": round(self.min_gap_moving_m, 2), "red_light_stops": self.red_light_stops,
                 "stop_sign_stops": self.stop_sign_stops, "pedestrian_yields": self.pedestrian_yields,
-                "sweeps": self.sweeps, "rollbacks": self.rollbacks, "time_gap_p5_s": round(float(np.percentile(tg, 5)), 2) if len(tg) else None}
+                "sweeps": self.sweeps, "rollbacks": self.rollbacks, "standoffs": self.standoffs,
+                "time_gap_p5_s": round(float(np.percentile(tg, 5)), 2) if len(tg) else None}
 
 
 class Autopilot:
@@ -202,6 +205,8 @@ class Autopilot:
         self._path_lanes: set = set()     # the lanes of the path
         self._path_junctions: set = set()  # the junctions it goes through
         self._path_bridge = None          # per path point: on a bridge's lane (None: no bridge)
+        self._standoff_with = None        # (vehicle, since): the car stands before it for its sweep
+        self._released: set = set()       # vehicles taken out after a standoff (_standoff)
         self._path_rises = None           # per path point: how high it stands over the terrain (_path_rises_at)
         self._path_edges: set = set()     # the edges of the path
         self._net_generation = getattr(getattr(sim, "traffic", None), "_generation", 0)
@@ -313,8 +318,42 @@ class Autopilot:
         if v_target < 0.05 and v < 0.3:
             throttle, brake = 0.0, 1.0
         self._update_stats(v, t)
+        self._standoff(v, t, actors)
         self.last = (throttle, brake, steer)
         return throttle, brake, steer
+
+    def _standoff(self, v: float, t: float, actors) -> None:
+        """A standoff: the car stands for its sweep's sake (``clearance``) before a vehicle that
+        stands too, STANDOFF_S and more, and SUMO has that vehicle wait for nothing it can see
+        (no red light or queue ahead of it): it waits for the car (Monaco, seed 17: a car
+        stood inside a junction, waiting for the car, which waited for it, until SUMO teleported
+        it 120 s later). That vehicle is taken out of SUMO (``SumoTraffic.release_standoff``:
+        SUMO's own remedy for a jam, sooner), once."""
+        who = self.sweep[1] if self.sweep is not None and self.reason.startswith("clearance") else None
+        if who is None or v > 0.1:
+            self._standoff_with = None
+            return
+        try:
+            k = actors.index(who)
+        except (KeyError, ValueError, IndexError):
+            k = None
+        if k is None or actors.kind[k] == "person" or float(actors.speed[k]) > 0.1:
+            self._standoff_with = None
+            return
+        if self._standoff_with is None or self._standoff_with[0] != who:
+            self._standoff_with = (who, t)
+            return
+        if t - self._standoff_with[1] < STANDOFF_S or who in self._released:
+            return
+        tr = getattr(self.sim, "traffic", None)
+        release = getattr(tr, "release_standoff", None) if tr is not None else None
+        if release is None:
+            return
+        self._released.add(who)
+        if release(who, STANDOFF_S):
+            self.stats.standoffs += 1
+            self.stats.events.append((round(t, 2), "standoff", f"{who} taken out after {t - self._standoff_with[1]:.0f} s"))
+            log.info("standoff with %s at t=%.1f s: taken out of SUMO", who, t)
 
     # --- perception ----------------------------------------------------------------------
     def _road_pitch(self, st) -> float:

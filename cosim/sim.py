@@ -70,6 +70,7 @@ class Summary:
     sumo_collisions: int = 0
     sumo_teleports: int = 0
     persons_held: int = 0            # pedestrians that stopped rather than walk into the ego
+    standoffs_released: int = 0      # vehicles taken out of SUMO after a standoff with the ego
     ego_collisions: int = 0
     distance_m: float = 0.0
     sensor_range_violations: int = 0
@@ -95,6 +96,8 @@ class Summary:
                 f"windows built {self.windows_built}, SUMO network swaps {self.network_swaps}"
                 + (f" (waited {self.swap_wait_s:.1f} s for late builds)" if self.swap_wait_s else "")
                 + (f"; SUMO restarted after a crash {self.sumo_restarts} time(s)" if self.sumo_restarts else "")
+                + (f"; vehicles taken out after a standoff with the ego {self.standoffs_released}"
+                   if self.standoffs_released else "")
                 + f".{arr}")
 
 
@@ -738,6 +741,7 @@ class Simulation:
                 self.traffic.sync()
             s.sumo_collisions, s.sumo_teleports = self.traffic.stats.collisions, self.traffic.stats.teleports
             s.persons_held = self.traffic.stats.persons_held
+            s.standoffs_released = getattr(self.traffic.stats, "released", 0)
         s.chunks_visited = len(self._chunks_seen)
         if self._frame_ms:
             f = np.array(self._frame_ms)

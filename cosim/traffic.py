@@ -237,6 +237,7 @@ class TrafficStats:
     max_persons: int = 0
     swap_dropped: int = 0      # carried persons a swap had to drop (see _drop_stranded_persons)
     persons_held: int = 0      # times a pedestrian stopped rather than walk into the ego (_persons_yield)
+    released: int = 0          # vehicles taken out after a standoff with the ego (release_standoff)
     _seen_collisions: set = field(default_factory=set, repr=False)
 
 
@@ -604,6 +605,33 @@ class SumoTraffic(Component):
         st.vehicles = s.vehicle.getIDCount() - (1 if self._ego_in_sim else 0)
         st.max_vehicles = max(st.max_vehicles, st.vehicles)
         st.max_persons = max(st.max_persons, st.persons)
+
+    def release_standoff(self, vid: str, waited_s: float) -> bool:
+        """Take vehicle `vid` out of SUMO if it has stood `waited_s` (less a second) for no
+        reason SUMO shows: no red or yellow light within 30 m ahead of it, no standing vehicle
+        within 10 m ahead but the ego, no stop of its own. The autopilot asks this after a
+        standoff (the car waits for it, it waits for the car; SUMO would teleport it after
+        ``time_to_teleport``). Returns whether it was taken out."""
+        s = self._require()
+        tc = self._tc
+        try:
+            if vid == EGO_ID or vid not in s.vehicle.getIDList():
+                return False
+            if s.vehicle.getWaitingTime(vid) < waited_s - 1.0 or s.vehicle.isStopped(vid):
+                return False
+            tls = s.vehicle.getNextTLS(vid)
+            if tls and tls[0][2] < 30.0 and tls[0][3] in "rRyYu":
+                return False
+            lead = s.vehicle.getLeader(vid, 10.0)
+            if lead and lead[0] and lead[0] != EGO_ID and lead[1] < 10.0 and s.vehicle.getSpeed(lead[0]) < 0.1:
+                return False
+            s.vehicle.remove(vid, tc.REMOVE_VAPORIZED)
+        except self._exc:
+            return False
+        self.stats.released += 1
+        log.info("SUMO: %s taken out at t=%.1f s after a standoff with the ego (it stood %.0f s)",
+                 vid, self.sim_time, waited_s)
+        return True
 
     def _persons_yield(self) -> None:
         """Pedestrians do not walk into the ego: one whose path would take it into the ego's

@@ -837,6 +837,63 @@ def test_a_car_standing_inside_a_turn_beside_the_corridor_stops_the_car_before_i
         sim.teardown()
 
 
+def test_a_standoff_with_a_vehicle_in_the_sweep_ends_with_it_taken_out_of_sumo(helsinki):
+    """The car stands for its sweep's sake before a vehicle that stands too (Monaco, seed 17:
+    inside a junction each waited for the other until SUMO teleported the vehicle 120 s
+    later): after STANDOFF_S the autopilot has SUMO take that vehicle out, once; not while
+    either moves, not for a person."""
+    from cosim.autopilot import STANDOFF_S
+    from cosim.traffic import ActorsSnapshot
+
+    sim = start_sim(helsinki, start=HEL_MID)
+    try:
+        ap, tr = sim.driver, sim.traffic
+        s = tr.sumo
+        lane = max((ln for ln in s.lane.getIDList() if not ln.startswith(":")
+                    and "passenger" in (s.lane.getAllowed(ln) or ("passenger",))), key=s.lane.getLength)
+        edge = lane.rsplit("_", 1)[0]
+        s.route.add("r_stand", [edge])
+        s.vehicle.add("stander", "r_stand", typeID="DEFAULT_VEHTYPE", depart="now", departPos="20",
+                      departSpeed="0", departLane=lane.rsplit("_", 1)[1])
+        for _ in range(int(STANDOFF_S / 0.1) + 20):      # it stands, in SUMO, a little longer
+            s.vehicle.setSpeed("stander", 0.0)
+            tr.step()
+        assert "stander" in s.vehicle.getIDList()
+        x, y = s.vehicle.getPosition("stander")
+        one = lambda v: np.array([v])                    # noqa: E731
+
+        def snap(kind="passenger", speed=0.0):
+            return ActorsSnapshot(0.0, np.array(["stander"], dtype=object), np.array([kind], dtype=object),
+                                  one(x), one(y), one(0.0), one(4.5), one(1.8), one(1.5), one(speed), one(0.0),
+                                  np.array([lane], dtype=object))
+
+        ap.sweep, ap.reason = (0.0, "stander", "vehicle"), "clearance vehicle"
+        t = 0.0
+        while t < 2.0 * STANDOFF_S:                      # it moves every 10 s: no standoff
+            ap._standoff(0.0, t, snap(speed=1.0) if t % 10.0 == 0.0 else snap())
+            t += 0.5
+        assert ap.stats.standoffs == 0
+        while t < 4.0 * STANDOFF_S:                      # a person: none
+            ap._standoff(0.0, t, snap(kind="person"))
+            t += 0.5
+        ap._standoff(0.5, t, snap())                     # (the car rolling: none)
+        assert ap.stats.standoffs == 0 and "stander" in s.vehicle.getIDList()
+        t0 = t
+        while t < t0 + STANDOFF_S - 0.5:                 # standing, both: not yet
+            ap._standoff(0.0, t, snap())
+            t += 0.5
+        assert ap.stats.standoffs == 0 and "stander" in s.vehicle.getIDList()
+        for _ in range(4):
+            ap._standoff(0.0, t, snap())
+            t += 0.5
+        assert ap.stats.standoffs == 1
+        assert [e for e in ap.stats.events if e[1] == "standoff"][0][2].startswith("stander")
+        tr.step()
+        assert "stander" not in s.vehicle.getIDList() and tr.stats.released == 1
+    finally:
+        sim.teardown()
+
+
 def test_a_car_already_on_a_crossing_junction_lane_goes_on_when_it_clears_it_in_time(helsinki):
     """A junction lane that runs over the path (two junctions drawn into each other) is a
     stretch the car stops before while a vehicle on it would meet the car there. When the car

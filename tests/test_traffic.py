@@ -999,3 +999,27 @@ def test_a_follower_is_held_as_the_ego_starts_moving_over_into_its_lane(traffic)
     assert first is not None and first + 0.9 < w / 2.0 + STRADDLE_M, (first, w)
     assert s.vehicle.getLanePosition("chaser") < s.vehicle.getLanePosition(EGO_ID) - 4.5
     assert t.stats.collisions == 0
+
+
+def test_a_vehicle_standing_for_no_reason_sumo_shows_is_taken_out_after_a_standoff(traffic):
+    """``release_standoff`` (the autopilot asks it after standing STANDOFF_S for a vehicle that
+    stands for the car) takes a vehicle out of SUMO only if it has stood that long with
+    nothing ahead of it to wait for: not one queued behind a standing vehicle, not one that
+    has not waited long enough."""
+    t = traffic(seed=2)
+    s = t.sumo
+    lane, _ = _vehicles_on_a_lane(s, 150.0, {"front": 80.0, "queued": 70.0, "alone": 20.0}, 0.0)
+    for _ in range(250):                             # 25 s, all three held standing
+        for vid in ("front", "queued", "alone"):
+            s.vehicle.setSpeed(vid, 0.0)
+        t.step()
+    assert {"front", "queued", "alone"} <= set(s.vehicle.getIDList())
+    assert s.vehicle.getWaitingTime("alone") >= 20.0
+    assert not t.release_standoff("queued", 20.0)   # behind "front", 5.5 m ahead, standing
+    assert not t.release_standoff("front", 30.0)    # it has stood 25 s only
+    assert not t.release_standoff("nobody", 20.0)
+    assert t.release_standoff("alone", 20.0)         # 45 m behind "queued": nothing to wait for
+    t.step()
+    ids = set(s.vehicle.getIDList())
+    assert "alone" not in ids and {"front", "queued"} <= ids
+    assert t.stats.released == 1
