@@ -147,6 +147,7 @@ class ActorMirror:
             z = self.world.ground_z(X, Y)
             z = np.where(np.isfinite(z), z, 0.0)
             lanes = getattr(snap, "lane", None)
+            deck = None                 # indices (into X, Y) of the actors and boxes put on a deck
             if lanes is not None:
                 # on a bridge: on its deck, not on the terrain under it (Monaco, seed 13: a car
                 # on Boulevard du Larvotto's bridge, mirrored 5 m down, drove through the car
@@ -162,8 +163,17 @@ class ActorMirror:
                             if a < n:
                                 raised[ids_[a]] = dz
                         z[on[up]] = top[up]
+                        deck = on[up]
             pitch = self.world.slope_pitch(X, Y, YAW)
             pitch = np.where(np.isfinite(pitch), pitch, slope)
+            if deck is not None and len(deck):
+                # (on a deck: pitched as the deck is, 2.5 m ahead and behind, not as the
+                # terrain under it: a car on a Portland ramp's deck stood 22 degrees nose up)
+                cd, sd = np.cos(YAW[deck]), np.sin(YAW[deck])
+                zf = self.world.road_top_z(X[deck] + 2.5 * cd, Y[deck] + 2.5 * sd, r=2.0)
+                zb = self.world.road_top_z(X[deck] - 2.5 * cd, Y[deck] - 2.5 * sd, r=2.0)
+                p_deck = np.arctan2(zf - zb, 5.0)
+                pitch[deck] = np.where(np.isfinite(p_deck), p_deck, 0.0)
             # quaternions of (roll 0, pitch -p, yaw) for all actors (and boxes) at once
             hy, hp = YAW * 0.5, -pitch * 0.5
             cy, sy, cp2, sp2 = np.cos(hy), np.sin(hy), np.cos(hp), np.sin(hp)

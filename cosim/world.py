@@ -105,14 +105,20 @@ class World:
 
     def bridge_lanes(self) -> frozenset:
         """The lanes of the network's bridges (OSM ``bridge=*``: decks, not on the ground):
-        from ``<net>.bridges.json`` beside the network if a window's build wrote it, else read
-        from the network (0.25 s: the simulation's setup asks first)."""
+        from ``<net>.bridges.json`` beside the network if a window's build wrote it (this
+        version's), else read from the network (0.25 s: the simulation's setup asks first)."""
         got = getattr(self, "_bridge_lanes", None)
         if got is None or got[0] != self.net_file:
             side = Path(str(self.net_file) + ".bridges.json")
+            lanes = None
             if side.exists():
-                lanes = frozenset(json.loads(side.read_text()))
-            else:
+                try:
+                    doc = json.loads(side.read_text())
+                except ValueError:
+                    doc = None
+                if isinstance(doc, dict) and doc.get("version") == BRIDGE_LANES_VERSION:
+                    lanes = frozenset(doc.get("lanes", ()))
+            if lanes is None:
                 lanes = _read_bridge_lanes(self.net_file)
             got = self._bridge_lanes = (self.net_file, lanes)
         return got[1]
@@ -243,16 +249,37 @@ class World:
         return tuple(self.meta["extent_m"])
 
 
+#: ``<net>.bridges.json``'s version: 2 adds the lanes of junctions on a deck (an older file is
+#: not trusted: the network is read again)
+BRIDGE_LANES_VERSION = 2
+
+
 def _read_bridge_lanes(net_file) -> frozenset:
+    """The lanes of bridge edges, and of the junctions on a deck: every road that meets such a
+    junction is a bridge (Portland: 145 junctions on I-405's decks and ramps; a vehicle on one
+    of their 369 junction lanes was mirrored on the terrain, metres under the deck)."""
     from netgen.roadnet import read_net
 
-    return frozenset(ln.id for e in read_net(net_file).normal_edges() if getattr(e, "bridge", False)
-                     for ln in e.lanes)
+    net = read_net(net_file)
+    on_deck: dict = {}              # junction -> every road meeting it is a bridge
+    lanes = set()
+    for e in net.normal_edges():
+        bridge = bool(getattr(e, "bridge", False))
+        if bridge:
+            lanes.update(ln.id for ln in e.lanes)
+        for j in (e.from_node, e.to_node):
+            if j:
+                on_deck[j] = on_deck.get(j, True) and bridge
+    for e in net.edges.values():
+        if e.function != "normal" and on_deck.get(e.id[1:].rsplit("_", 1)[0]):
+            lanes.update(ln.id for ln in e.lanes)
+    return frozenset(lanes)
 
 
 def write_bridge_lanes(net_file) -> None:
     """``<net>.bridges.json``: the bridge lanes of a network, for ``World.bridge_lanes``."""
     from netgen._atomic import write_text
 
-    write_text(Path(str(net_file) + ".bridges.json"), json.dumps(sorted(_read_bridge_lanes(net_file))))
+    write_text(Path(str(net_file) + ".bridges.json"),
+               json.dumps({"version": BRIDGE_LANES_VERSION, "lanes": sorted(_read_bridge_lanes(net_file))}))
 

@@ -1131,6 +1131,73 @@ def test_a_car_on_a_bridge_is_mirrored_on_its_deck_not_on_the_ground(monaco):
         sim.teardown()
 
 
+@pytest.fixture(scope="module")
+def portland_decks(tmp_path_factory):
+    """Portland by I-405's ramps (the bench's centre): junctions on decks."""
+    osm = shared_file("osm/portland-central-2015.osm.pbf")
+    dem = shared_file("dem/portland-ned.tif")
+    out = tmp_path_factory.mktemp("drv") / "portland-decks"
+    build_world(WorldConfig(osm=str(osm), dem=[str(dem)], center=(45.5152, -122.6784), chunks=0, out=str(out),
+                            cache_dir=str(out.parent / "cache")))
+    return str(out)
+
+
+def test_a_car_on_a_junction_on_a_deck_is_mirrored_on_the_deck(portland_decks, tmp_path):
+    """A junction every road of which is a bridge (a ramp joining a deck) lies on the deck: its
+    junction lanes are bridge lanes, and a car on one stands on the deck (Portland: 102 such
+    junction lanes 3-19 m over the terrain, where the mirror put cars on the ground), pitched
+    as the deck is. A ``bridges.json`` of an older version beside a network is not trusted."""
+    import json
+    import shutil
+
+    import pybullet as pb
+
+    from cosim.driving import junction_of
+    from cosim.traffic import ActorsSnapshot
+    from cosim.world import BRIDGE_LANES_VERSION, World, write_bridge_lanes
+    from netgen.roadnet import read_net
+
+    sim = start_sim(portland_decks)
+    try:
+        lanes = sim.world.bridge_lanes()
+        lane = ":40641464_0_0"
+        assert lane in lanes
+        net = read_net(sim.world.net_file)
+        meeting = [e for e in net.normal_edges() if "40641464" in (e.from_node, e.to_node)]
+        assert len(meeting) >= 2 and all(e.bridge for e in meeting)
+        on_ground = {j for e in net.normal_edges() if not e.bridge for j in (e.from_node, e.to_node)}
+        assert not any(ln.startswith(":") and junction_of(ln) in on_ground for ln in lanes)
+        x, y, rise, P, d, sk = _highest_deck_point(sim, lane)
+        assert rise > 3.0
+        k = max(1, int(np.searchsorted(d, sk)))
+        h = float(np.arctan2(*(P[min(k, len(P) - 1)] - P[k - 1])[::-1]))
+        one = lambda v: np.array([v])             # noqa: E731
+        sim.mirror.update(ActorsSnapshot(0.0, np.array(["j1"], dtype=object), np.array(["passenger"], dtype=object),
+                                         one(x), one(y), one(h), one(4.5), one(1.8), one(1.5), one(5.0), one(0.0),
+                                         np.array([lane], dtype=object)))
+        pos, q = pb.getBasePositionAndOrientation(sim.mirror.body_of("j1"), physicsClientId=sim.physics.client)
+        assert pos[2] > float(sim.world.ground_z([x], [y])[0]) + 3.0
+        # pitched as the deck (a junction's plane), not as the hillside under it
+        terrain = math.degrees(float(sim.world.slope_pitch(np.array([x]), np.array([y]), np.array([h]))[0]))
+        assert abs(terrain) > 10.0 and abs(math.degrees(pb.getEulerFromQuaternion(q)[1])) < 5.0, terrain
+        # the side file a window's build writes: this version's is read, an older one is not
+        net_copy = tmp_path / "world.net.xml"
+        shutil.copy(sim.world.net_file, net_copy)
+        bare = World.__new__(World)
+        bare.net_file = net_copy
+        side = tmp_path / "world.net.xml.bridges.json"
+        side.write_text(json.dumps(sorted(ln for ln in lanes if not ln.startswith(":"))))   # version 1
+        assert bare.bridge_lanes() == lanes
+        write_bridge_lanes(net_copy)
+        assert json.loads(side.read_text())["version"] == BRIDGE_LANES_VERSION
+        side.write_text(json.dumps({"version": BRIDGE_LANES_VERSION, "lanes": ["x_0"]}))
+        fresh = World.__new__(World)
+        fresh.net_file = net_copy
+        assert fresh.bridge_lanes() == frozenset({"x_0"})
+    finally:
+        sim.teardown()
+
+
 def test_a_car_on_another_level_is_no_obstacle(monaco):
     """A car on a bridge's deck crossing over the path, or on the road under a deck the path
     goes over, is on another level: no lead (Monaco, seed 13: the car stopped for a car on
