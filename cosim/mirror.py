@@ -144,7 +144,7 @@ class ActorMirror:
                 slope = np.concatenate((slope, slope[where]))
             else:
                 X, Y, YAW = x, y, yaw
-            z = self.world.ground_z(X, Y)
+            z, pitch = self.world.ground_z_and_pitch(X, Y, YAW)
             z = np.where(np.isfinite(z), z, 0.0)
             lanes = getattr(snap, "lane", None)
             deck = None                 # indices (into X, Y) of the actors and boxes put on a deck
@@ -164,15 +164,14 @@ class ActorMirror:
                                 raised[ids_[a]] = dz
                         z[on[up]] = top[up]
                         deck = on[up]
-            pitch = self.world.slope_pitch(X, Y, YAW)
             pitch = np.where(np.isfinite(pitch), pitch, slope)
             if deck is not None and len(deck):
                 # (on a deck: pitched as the deck is, 2.5 m ahead and behind, not as the
                 # terrain under it: a car on a Portland ramp's deck stood 22 degrees nose up)
-                cd, sd = np.cos(YAW[deck]), np.sin(YAW[deck])
-                zf = self.world.road_top_z(X[deck] + 2.5 * cd, Y[deck] + 2.5 * sd, r=2.0)
-                zb = self.world.road_top_z(X[deck] - 2.5 * cd, Y[deck] - 2.5 * sd, r=2.0)
-                p_deck = np.arctan2(zf - zb, 5.0)
+                cd, sd = 2.5 * np.cos(YAW[deck]), 2.5 * np.sin(YAW[deck])
+                zfb = self.world.road_top_z(np.concatenate((X[deck] + cd, X[deck] - cd)),
+                                            np.concatenate((Y[deck] + sd, Y[deck] - sd)), r=2.0)
+                p_deck = np.arctan2(zfb[:len(deck)] - zfb[len(deck):], 5.0)
                 pitch[deck] = np.where(np.isfinite(p_deck), p_deck, 0.0)
             # quaternions of (roll 0, pitch -p, yaw) for all actors (and boxes) at once
             hy, hp = YAW * 0.5, -pitch * 0.5

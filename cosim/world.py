@@ -150,6 +150,16 @@ class World:
                         out[k] = float(z[near].max())
         return out
 
+    def ground_z_and_pitch(self, x, y, yaw, d: float = 1.5) -> tuple:
+        """``ground_z(x, y)`` and ``slope_pitch(x, y, yaw, d)`` in one lookup of the terrain
+        (the mirror asks both for every actor, every frame)."""
+        x = np.atleast_1d(np.asarray(x, dtype=float))
+        y = np.atleast_1d(np.asarray(y, dtype=float))
+        c, s = np.cos(yaw) * d, np.sin(yaw) * d
+        n = len(x)
+        z = self.ground_z(np.concatenate((x, x + c, x - c)), np.concatenate((y, y + s, y - s)))
+        return z[:n], np.arctan2(z[n:2 * n] - z[2 * n:], 2 * d)
+
     def slope_pitch(self, x, y, yaw, d: float = 1.5) -> np.ndarray:
         """Pitch (rad, nose up positive) of a body at x/y heading yaw, from the ground."""
         c, s = np.cos(yaw), np.sin(yaw)
