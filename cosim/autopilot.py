@@ -522,7 +522,7 @@ class Autopilot:
             if lead is not None:
                 cands.append(lead)
         # 3. SUMO's leader
-        lead = self._sumo_leader(s_here, path)
+        lead = self._sumo_leader(s_here, path, actors)
         if lead is not None:
             cands.append(lead)
         if not cands:
@@ -989,7 +989,10 @@ class Autopilot:
         except Exception:
             return False
 
-    def _sumo_leader(self, s_here, path) -> Lead | None:
+    def _sumo_leader(self, s_here, path, actors=None) -> Lead | None:
+        """SUMO's leader of the ego, if it is on a lane of the path ahead. Its lane and speed
+        come from the actors' snapshot where it is in it (a read of a vehicle the loop did
+        not ask for before waits for SUMO's step in flight: 66 waits in 3,000 frames)."""
         tr = getattr(self.sim, "traffic", None)
         if tr is None:
             return None
@@ -1006,10 +1009,16 @@ class Autopilot:
                 return None
             lid, dist = res
             gap = float(dist) + float(s.vehicle.getMinGap("ego"))
-            lane = s.vehicle.getLaneID(lid)
+            k = None
+            lanes = getattr(actors, "lane", None) if actors is not None else None
+            if lanes is not None:
+                hit = np.flatnonzero(actors.ids == lid)
+                k = int(hit[0]) if len(hit) and lanes[int(hit[0])] else None
+            lane = lanes[k] if k is not None else s.vehicle.getLaneID(lid)
             if lane not in path.lanes_between(s_here, s_here + gap + self.front + 15.0):
                 return None
-            return Lead(max(0.0, gap), max(0.0, float(s.vehicle.getSpeed(lid))), "vehicle", "sumo", lid)
+            speed = float(actors.speed[k]) if k is not None else float(s.vehicle.getSpeed(lid))
+            return Lead(max(0.0, gap), max(0.0, speed), "vehicle", "sumo", lid)
         except Exception:
             return None
 
