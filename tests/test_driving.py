@@ -56,14 +56,19 @@ def monaco(tmp_path_factory):
     return str(out)
 
 
-@pytest.fixture(scope="module")
-def portland(tmp_path_factory):
+def _portland_world(tmp_path_factory, name: str, center: tuple) -> str:
+    """One chunk of Portland (OSM and NED from ../shared/data) around `center`."""
     osm = shared_file("osm/portland-central-2015.osm.pbf")
     dem = shared_file("dem/portland-ned.tif")
-    out = tmp_path_factory.mktemp("drv") / "portland"
-    build_world(WorldConfig(osm=str(osm), dem=[str(dem)], center=(45.5310, -122.6990), chunks=0, out=str(out),
+    out = tmp_path_factory.mktemp("drv") / name
+    build_world(WorldConfig(osm=str(osm), dem=[str(dem)], center=center, chunks=0, out=str(out),
                             cache_dir=str(out.parent / "cache")))
     return str(out)
+
+
+@pytest.fixture(scope="module")
+def portland(tmp_path_factory):
+    return _portland_world(tmp_path_factory, "portland", (45.5310, -122.6990))
 
 
 def start_sim(world, **kw) -> Simulation:
@@ -1134,12 +1139,7 @@ def test_a_car_on_a_bridge_is_mirrored_on_its_deck_not_on_the_ground(monaco):
 @pytest.fixture(scope="module")
 def portland_decks(tmp_path_factory):
     """Portland by I-405's ramps (the bench's centre): junctions on decks."""
-    osm = shared_file("osm/portland-central-2015.osm.pbf")
-    dem = shared_file("dem/portland-ned.tif")
-    out = tmp_path_factory.mktemp("drv") / "portland-decks"
-    build_world(WorldConfig(osm=str(osm), dem=[str(dem)], center=(45.5152, -122.6784), chunks=0, out=str(out),
-                            cache_dir=str(out.parent / "cache")))
-    return str(out)
+    return _portland_world(tmp_path_factory, "portland-decks", (45.5152, -122.6784))
 
 
 def test_a_car_on_a_junction_on_a_deck_is_mirrored_on_the_deck(portland_decks, tmp_path):
