@@ -61,6 +61,7 @@ import numpy as np
 
 from .driving import (PurePursuit, SpeedController, _drivable_lanes, _resample, curve_speed, junction_of,
                       plan_speed, stop_speed)
+from .mirror import LEVEL_M      # (levels more than this apart: a deck and the road under it)
 from .traffic import _boxes_overlap
 from .vehicle import STEER_RATE, WHEELBASE
 
@@ -80,7 +81,6 @@ NEAR_MISS_TTC_S = 1.5
 NEAR_MISS_GAP_M = 2.0
 SENSE_RANGE_M = 80.0       # obstacles on the path are considered up to here
 STANDOFF_S = 20.0          # the car and a vehicle in its sweep both standing this long: a standoff
-LEVEL_M = 4.0              # a deck this high over the terrain is another level than the road under it
 LEVEL_REACH_M = 40.0       # ... looked at for actors this near (in x and y) where the path is up there
 CROSS_LANE_MARGIN_M = 3.5  # a crossing vehicle's road may have a lane nearer than its own
 LANE_CONFLICT_MARGIN_M = 0.5  # a junction lane over the path: clear of the two bodies by this
@@ -400,13 +400,14 @@ class Autopilot:
         the actor would meet it (its projection), how high the path's lane is there over the
         terrain (a bridge's lane, else 0); they are other levels more than LEVEL_M apart.
         Actors on the path's roads, persons and vehicles on no known lane are kept. Such a car
-        crossing the path is no lead, foe or obstacle (Monaco, seed 13: the car stopped for cars passing over it on Boulevard du
-        Larvotto's bridge). The actors as they are where no actor stands on a deck and the
-        path has no bridge near."""
+        crossing the path is no lead, foe or obstacle (Monaco, seed 13: the car stopped for
+        cars passing over it on Boulevard du Larvotto's bridge). The actors as they are where
+        no actor stands on a deck and the path has no bridge near."""
         raised = getattr(getattr(self.sim, "mirror", None), "raised", None) or {}
         bridge = self._path_bridge
         n = len(actors)
-        if not n:
+        lanes = getattr(actors, "lane", None)
+        if not n or lanes is None:
             return actors
         s0, s1 = s_here - 20.0, s_here + SENSE_RANGE_M + 40.0
         up = None                   # the path's points ahead on a deck more than LEVEL_M up
@@ -428,9 +429,6 @@ class Autopilot:
             lo, hi = P.min(axis=0) - LEVEL_REACH_M, P.max(axis=0) + LEVEL_REACH_M
             near = (actors.x >= lo[0]) & (actors.x <= hi[0]) & (actors.y >= lo[1]) & (actors.y <= hi[1])
             cand = np.flatnonzero(near | is_raised)
-        lanes = getattr(actors, "lane", None)
-        if lanes is None:
-            return actors
         if len(cand):
             # (persons are kept: one on a walking area or crossing on a deck, no bridge's lane,
             # stands on the terrain in this world; so is a vehicle on no known lane)
@@ -466,9 +464,9 @@ class Autopilot:
         new = idx[np.isnan(rises[idx])]
         if len(new):
             # (with the bridge's points up to 200 further on: one call for a stretch of them)
-            hi = min(len(rises), int(new.max()) + 200)
-            more = int(new.max()) + 1 + np.flatnonzero(self._path_bridge[int(new.max()) + 1:hi]
-                                                       & np.isnan(rises[int(new.max()) + 1:hi]))
+            lo = int(new.max()) + 1
+            hi = min(len(rises), lo + 199)
+            more = lo + np.flatnonzero(self._path_bridge[lo:hi] & np.isnan(rises[lo:hi]))
             new = np.concatenate((new, more))
             world = self.sim.world
             x, y = path.xy[new, 0], path.xy[new, 1]
@@ -1010,11 +1008,14 @@ class Autopilot:
             lid, dist = res
             gap = float(dist) + float(s.vehicle.getMinGap("ego"))
             k = None
-            lanes = getattr(actors, "lane", None) if actors is not None else None
-            if lanes is not None:
-                hit = np.flatnonzero(actors.ids == lid)
-                k = int(hit[0]) if len(hit) and lanes[int(hit[0])] else None
-            lane = lanes[k] if k is not None else s.vehicle.getLaneID(lid)
+            if getattr(actors, "lane", None) is not None:
+                try:
+                    k = actors.index(lid)
+                except KeyError:
+                    pass
+                if k is not None and not actors.lane[k]:
+                    k = None
+            lane = actors.lane[k] if k is not None else s.vehicle.getLaneID(lid)
             if lane not in path.lanes_between(s_here, s_here + gap + self.front + 15.0):
                 return None
             speed = float(actors.speed[k]) if k is not None else float(s.vehicle.getSpeed(lid))

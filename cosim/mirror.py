@@ -131,6 +131,7 @@ class ActorMirror:
         self.held_at = {}
         raised = self.raised = {}
         ids_ = snap.ids
+        ego_z = ego[5] if ego is not None and len(ego) > 5 else None
         if n:
             x, y, yaw = snap.x, snap.y, snap.yaw
             kinds = snap.kind
@@ -185,7 +186,7 @@ class ActorMirror:
                     chain_at.setdefault(k, []).append(boxes[i] + (zl[i], cl[i], quat[n + i]))
             if ego is not None:
                 for k, bx in chain_at.items():
-                    if any(_boxes_overlap(ego[:5], b[:5], margin=0.1) and (len(ego) < 6 or abs(b[5] - ego[5]) < LEVEL_M)
+                    if any(_boxes_overlap(ego[:5], b[:5], margin=0.1) and (ego_z is None or abs(b[5] - ego_z) < LEVEL_M)
                            for b in bx):
                         chain_at[k] = None          # held where it was
             z, cosp = z[:n], cosp[:n]
@@ -219,7 +220,7 @@ class ActorMirror:
                     held += self._place_chain(aid, cur, key, chain_at[k])
                     continue
                 if near[k] and _boxes_overlap(ego[:5], (xs[k], ys[k], yaws[k], key[1], key[2]), margin=0.1) \
-                        and (len(ego) < 6 or abs(zs[k] - ego[5]) < LEVEL_M):
+                        and (ego_z is None or abs(zs[k] - ego_z) < LEVEL_M):
                     held += 1
                     last = self._last.get(cur[0])
                     if last is not None:

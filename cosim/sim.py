@@ -386,8 +386,7 @@ class Simulation:
         with self.traffic.lagged_reads() if pipelined else contextlib.nullcontext():
             self.t += cfg.step_length_s
             self.last_snapshot = snap
-            self.mirror.update(snap, ego=(st.x, st.y, st.yaw, self.vehicle.spec.length, self.vehicle.spec.width,
-                                                  st.z))
+            self.mirror.update(snap, ego=(st.x, st.y, st.yaw, self.vehicle.spec.length, self.vehicle.spec.width, st.z))
             # driving
             k, s_here, lat_off = self.path.project(st.x, st.y, self._path_idx)
             self._path_idx = k

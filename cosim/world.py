@@ -162,10 +162,7 @@ class World:
 
     def slope_pitch(self, x, y, yaw, d: float = 1.5) -> np.ndarray:
         """Pitch (rad, nose up positive) of a body at x/y heading yaw, from the ground."""
-        c, s = np.cos(yaw), np.sin(yaw)
-        zf = self.ground_z(x + c * d, y + s * d)
-        zb = self.ground_z(x - c * d, y - s * d)
-        return np.arctan2(zf - zb, 2 * d)
+        return self.ground_z_and_pitch(x, y, yaw, d)[1]
 
     # --- tiles --------------------------------------------------------------------------
     def tile_bounds(self, key):
