@@ -243,6 +243,8 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
         "sweeps": stats.sweeps, "sweep_events": [e for e in stats.events if e[1] == "sweep"][:10],
         "rollbacks": stats.rollbacks, "rollback_events": [e for e in stats.events if e[1] == "rollback"][:10],
         "standoffs": stats.standoffs, "standoff_events": [e for e in stats.events if e[1] == "standoff"][:10],
+        "lane_change_waits": stats.lane_change_waits,
+        "lane_change_wait_events": [e for e in stats.events if e[1] == "lane change wait"][:10],
         "ego_collisions": summary.ego_collisions, "sumo_collisions": summary.sumo_collisions,
         "reroutes": reroutes, "reroute_events": reroute_events[:10], "arrived": summary.arrived,
         "near_miss_events": [e for e in stats.events if e[1] == "near miss"][:10],

@@ -44,6 +44,15 @@ Longitudinal: a target speed, the minimum of
   (it cuts the corner). Where the sweep would touch a mirrored actor beside the corridor, the
   car follows the path closely (a short look-ahead, at most ``CLOSE_TRACK_MPS``) if that
   passes it, else stops ``SWEEP_STOP_M`` before the touch and waits (``clearance ...``);
+* lane changes (gap acceptance): where the path moves over to the next lane along an edge
+  (``LanePath.changes``), a vehicle in that lane (or coming into it: a junction lane beside
+  the car's, the road before) without room for the car, behind it its safe gap
+  (``LC_REACT_S`` at its speed plus braking at ``LC_DECEL`` down to the car's speed), ahead the
+  car's own, holds the car in its own lane (``LanePath.set_hold``) until it passes: the car
+  drops back behind a vehicle beside or ahead, and stops ``LC_ROOM_M`` before the edge's end
+  if no room comes (reason ``lane change``). Once ``LC_COMMIT`` of the way over it goes on. A
+  queue (slower than ``LC_SLOW_MPS``) holds it back only with its follower within
+  ``LC_SLOW_GAP_M`` of the car: the car merges behind the vehicle beside it;
 * the goal: stop at the snapped goal.
 
 A PI speed controller with a force model (``cosim.driving.SpeedController``) turns the target
@@ -104,6 +113,24 @@ SWEEP_GATE_RADIUS_M = 15.0  # ... and the path ahead turns no tighter than this 
 # closely: pure pursuit with this look-ahead (m), at most CLOSE_TRACK_MPS
 CLOSE_TRACK = {"k_ld": 0.3, "k_ld2": 0.0, "ld_min": 2.0}
 CLOSE_TRACK_MPS = 2.0
+# lane changes (_lane_change): the path moves over to the next lane along an edge; the car
+# holds back in its own lane while a vehicle in (or coming into) that lane would not have room
+LC_LOOK_S = 1.5            # looked at from this long before the steering's look-ahead meets the blend
+LC_ROOM_M = 12.0           # the change is made at the latest this far before the edge's end
+LC_REACT_S = 0.8           # a follower in the lane changed into: reaction time in its safe gap ...
+LC_DECEL = 4.0             # ... and the deceleration it is asked for at most
+LC_MIN_GAP_M = 2.0         # bumper to bumper, at least, before and behind in that lane
+LC_BAND_M = 1.8            # a vehicle's centre this near the lane changed into's centreline is in it
+LC_BEHIND_M = 100.0        # vehicles looked at this far behind ...
+LC_AHEAD_M = 30.0          # ... and this far ahead
+LC_COMMIT = 0.35           # this part of the way over (0..1), the car goes on with the change
+LC_HOLD_IN_S = 0.6         # the hold comes on over this long ...
+LC_HOLD_OUT_S = 2.5        # ... and goes off over this long, or LC_HOLD_OUT_M of the way
+LC_HOLD_OUT_M = 12.0       # (the longer: from a standstill the car moves over within 12 m)
+LC_SLOW_MPS = 3.0          # a vehicle slower than this (a queue) does not hold the car back
+# beside or ahead (the car merges behind it, following it as a leader, and SUMO holds the
+# follower it reaches in front of: _straddle_yield); behind, it needs LC_SLOW_GAP_M only
+LC_SLOW_GAP_M = 1.0
 EXPECT_AHEAD_M = 40.0      # reads are asked ahead (_expect) this far beyond where they are needed
 OSM_SIGN_RADIUS_M = 20.0   # an OSM stop sign belongs to an approach whose stop line is this close
 YIELD_STATES = set("m=goO")
@@ -138,6 +165,7 @@ class DrivingStats:
     sweeps: int = 0          # times the car's sweep found something beside the path corridor (_sweep)
     rollbacks: int = 0       # times the car rolled back (ROLLBACK_MPS) against the throttle
     standoffs: int = 0       # vehicles taken out of SUMO after a standoff with the car (_standoff)
+    lane_change_waits: int = 0   # lane changes held back for a vehicle in the lane changed into
     time_gaps: list = field(default_factory=list, repr=False)   # steady following samples, s
     events: list = field(default_factory=list, repr=False)      # (t, kind, detail)
 
@@ -147,6 +175,7 @@ class DrivingStats:
                 "min_gap_moving_m": round(self.min_gap_moving_m, 2), "red_light_stops": self.red_light_stops,
                 "stop_sign_stops": self.stop_sign_stops, "pedestrian_yields": self.pedestrian_yields,
                 "sweeps": self.sweeps, "rollbacks": self.rollbacks, "standoffs": self.standoffs,
+                "lane_change_waits": self.lane_change_waits,
                 "time_gap_p5_s": round(float(np.percentile(tg, 5)), 2) if len(tg) else None}
 
 
@@ -210,6 +239,9 @@ class Autopilot:
         self._path_rises = None           # per path point: how high it stands over the terrain (_path_rises_at)
         self._path_edges: set = set()     # the edges of the path
         self._net_generation = getattr(getattr(sim, "traffic", None), "_generation", 0)
+        self._hold = 0.0                  # how far the car holds back from a lane change (0..1)
+        self._hold_key = None             # ... which one (LaneChange.key: it outlives the path)
+        self._hold_blocker = None         # (vehicle, its speed, "behind" / "beside" / "ahead")
         self._near_miss_until = -1.0
         self._sweeping = False
         self._moving = False
@@ -239,6 +271,7 @@ class Autopilot:
         actors = self._same_level(actors, path, s_here)
         v = st.speed
         t = getattr(sim, "t", 0.0)
+        lane_change = self._lane_change(st, path, s_here, v, actors, dt, t)
         # the car's own sweep: anything it would touch beside the lane path's corridor; where
         # it would, follow the path closely and slowly if that passes, else stop before it
         touch = self._sweep(st, path, s_here, actors, self.pp)
@@ -272,6 +305,7 @@ class Autopilot:
             targets.append((stop_speed(self._s_goal - s_here, COMFORT_DECEL), "goal"))
         else:
             targets.append((stop_speed(path.length - s_here - 3.0, COMFORT_DECEL), "end of path"))
+        targets.extend(lane_change)
         # the edge of the built world (the road goes on, the ground does not)
         s_edge = self._world_edge(path, s_here, horizon)
         if s_edge is not None:
@@ -321,6 +355,122 @@ class Autopilot:
         self._standoff(v, t, actors)
         self.last = (throttle, brake, steer)
         return throttle, brake, steer
+
+    def _lane_change(self, st, path, s_here: float, v: float, actors, dt: float, t: float) -> list:
+        """Gap acceptance. The path moves over to the next lane along an edge (``LaneChange``);
+        before the car starts to, and until it is LC_COMMIT of the way over, a vehicle in (or
+        coming into) that lane without room for the car (``_lc_blocker``) holds it back in its
+        own lane (``LanePath.set_hold``), slowing to drop behind a vehicle beside or ahead, and
+        stopping LC_ROOM_M before the edge's end if the room does not come. (Blending over
+        regardless, the car moved in beside a faster car: Portland, seed 12, which SUMO counted
+        as a collision.) Returns the speed targets it sets."""
+        c = None
+        if path.changes:
+            reach = s_here + self.pp.lookahead(v) + max(v, 2.0) * LC_LOOK_S
+            for ch in path.changes:
+                if ch.s_end > s_here:
+                    c = ch if ch.s0 <= reach else None
+                    break
+        if c is None or (self._hold_key is not None and self._hold_key != c.key):
+            self._hold, self._hold_key, self._hold_blocker = 0.0, None, None
+        if c is None:
+            path.set_hold(None, 0.0)
+            return []
+        k = self._k
+        raw = self._lat + path.held_lat(k)              # the car's offset from the path itself
+        if k >= c.i1:
+            progress = 1.0
+        elif k < c.i0:
+            progress = 0.0
+        else:
+            j = k - c.i0
+            sep = float(c.src_lat[j] - c.tgt_lat[j])
+            progress = 1.0 - (raw - float(c.tgt_lat[j])) / sep if abs(sep) > 0.5 else \
+                (1.0 if s_here >= c.s1 else 0.0)
+        s_dead = c.s_end - LC_ROOM_M
+        hold = self._hold
+        blocker = None
+        if hold > 0.0 or progress < LC_COMMIT:
+            if hold > 0.0 and s_here > s_dead + 3.0 and v > 1.0:
+                blocker = None        # run past where it had to be made (no stop in time): go
+            elif hold > 0.0 or s_here + self.front + v * v / (2.0 * 1.5 * COMFORT_DECEL) < s_dead:
+                blocker = self._lc_blocker(c, st, path, s_here, v, actors)
+        if blocker is not None:
+            if hold == 0.0:
+                self.stats.lane_change_waits += 1
+                self.stats.events.append((round(t, 2), "lane change wait",
+                                          f"{c.from_lane} -> {c.to_lane}: {blocker[2]} {blocker[0]}"))
+            hold = min(1.0, hold + dt / LC_HOLD_IN_S)
+        else:
+            hold = max(0.0, hold - max(v, 1.0) * dt / max(LC_HOLD_OUT_M, max(v, 1.0) * LC_HOLD_OUT_S))
+        self._hold, self._hold_key, self._hold_blocker = hold, (c.key if hold > 0.0 else None), blocker
+        path.set_hold(c if hold > 0.0 else None, hold)
+        self._lat = raw - path.held_lat(k)
+        if blocker is None:
+            return []
+        targets = [(stop_speed(s_dead - s_here - self.front, COMFORT_DECEL), "lane change")]
+        if blocker[2] != "behind":          # beside or ahead: drop back behind it
+            targets.append((max(0.0, blocker[1] - 2.0), "lane change"))
+        return targets
+
+    def _lc_blocker(self, c, st, path, s_here: float, v: float, actors):
+        """The vehicle in lane change `c`'s target lane (or coming into it: a junction lane
+        beside the car's, the road before) without the room the change needs, as (id, speed,
+        "behind" / "beside" / "ahead"), or None. Room: behind the car a follower's safe gap
+        (LC_REACT_S at its speed, plus what it must brake at LC_DECEL to come down to the car's
+        speed), ahead the car's own, at least LC_MIN_GAP_M. A vehicle slower than LC_SLOW_MPS
+        (a queue) needs LC_SLOW_GAP_M behind the car and none beside or ahead: the car merges
+        behind it as before (Lauf, seed 18: held back beside a queue, the car stood inside a
+        junction and then for good before the edge's end; SUMO's queues leave no car-sized gap)."""
+        if actors is None or not len(actors):
+            return None
+        dx, dy = actors.x - st.x, actors.y - st.y
+        r = LC_BEHIND_M + 10.0
+        near = np.flatnonzero((dx * dx + dy * dy < r * r) & (actors.kind != "person"))
+        if len(near) == 0:
+            return None
+        s, off = path.project_many(actors.x[near], actors.y[near], s_here - LC_BEHIND_M, s_here + LC_AHEAD_M)
+        ok = np.isfinite(s)
+        if not ok.any():
+            return None
+        near, s, off = near[ok], s[ok], off[ok]
+        idx = np.clip(np.searchsorted(path.s, s, side="right") - 1, 0, len(path.s) - 1)
+        raw = off + path.held_lat(idx)
+        # behind where the path begins (it begins at the car after a start or a re-plan): along
+        # the line of its first heading
+        before = s <= 1e-6
+        if before.any():
+            h0 = float(path.heading[0])
+            ex = actors.x[near[before]] - path.xy[0, 0]
+            ey = actors.y[near[before]] - path.xy[0, 1]
+            s[before] = ex * math.cos(h0) + ey * math.sin(h0)
+            raw[before] = -ex * math.sin(h0) + ey * math.cos(h0) + path.held_lat(0)
+        band = c.tgt_lat[np.clip(idx - c.i0, 0, len(c.tgt_lat) - 1)]
+        dyaw = np.angle(np.exp(1j * (actors.yaw[near] - path.heading[idx])))
+        inl = (np.abs(raw - band) < LC_BAND_M) & (np.abs(dyaw) < 0.7) & (idx < c.i1 + 5)
+        worst = None
+        ego_front, ego_rear = s_here + self.front, s_here - self.front
+        for j in np.flatnonzero(inl).tolist():
+            i = near[j]
+            half = 0.5 * float(actors.length[i])
+            vf = max(0.0, float(actors.speed[i]) * math.cos(float(dyaw[j])))
+            slow = vf < LC_SLOW_MPS
+            if s[j] + half < ego_rear:
+                gap = ego_rear - (s[j] + half)
+                need = LC_SLOW_GAP_M if slow else \
+                    max(LC_MIN_GAP_M, vf * LC_REACT_S + (vf * vf - v * v) / (2.0 * LC_DECEL))
+                where = "behind"
+            elif slow:
+                continue
+            elif s[j] - half > ego_front:
+                gap = (s[j] - half) - ego_front
+                need = max(LC_MIN_GAP_M, v * 0.5 + (v * v - vf * vf) / (2.0 * LC_DECEL))
+                where = "ahead"
+            else:
+                gap, need, where = -1.0, 0.0, "beside"
+            if gap < need and (worst is None or gap - need < worst[3]):
+                worst = (str(actors.ids[i]), vf, where, gap - need)
+        return worst[:3] if worst is not None else None
 
     def _standoff(self, v: float, t: float, actors) -> None:
         """A standoff: the car stands for its sweep's sake (``clearance``) before a vehicle that
@@ -803,7 +953,8 @@ class Autopilot:
                         # edge). Followed like a leader, so that the car merges behind it, not
                         # into its side (Helsinki, seed 12: a car 0.7 m ahead in the lane
                         # changed into, side-swiped at 6.9 m/s)
-                        if not (lane in mine and not crossing and abs(o) <= hw + MERGE_WATCH_M):
+                        # (not while the car holds back from that change: _lane_change)
+                        if not (lane in mine and not crossing and abs(o) <= hw + MERGE_WATCH_M) or path.hold >= 0.5:
                             continue
                         inside = True
                 elif not inside:

@@ -548,6 +548,32 @@ class CrossingOnPath:
     shape: np.ndarray = field(repr=False, default=None)
 
 
+@dataclass
+class LaneChange:
+    """Where the path moves over from one lane to the next along an edge (``LanePath._blend``).
+
+    ``i0``..``i1`` (exclusive) are the path's points on that edge; per point, ``shift`` is the
+    vector from the path to the lane the car comes in on (zero before the blend begins, the
+    whole lane offset after it ends), ``src_lat`` and ``tgt_lat`` the signed lateral offsets
+    (left +) of that lane and of the lane changed into, from the path. ``s0`` and ``s1`` are
+    where the blend begins and ends, ``s_end`` where the edge ends (its stop line)."""
+    edge: str
+    from_lane: str
+    to_lane: str
+    i0: int
+    i1: int
+    s0: float
+    s1: float
+    s_end: float
+    shift: np.ndarray = field(repr=False, default=None)
+    src_lat: np.ndarray = field(repr=False, default=None)
+    tgt_lat: np.ndarray = field(repr=False, default=None)
+
+    @property
+    def key(self) -> tuple:
+        return (self.edge, self.from_lane, self.to_lane)
+
+
 def _onto_segments(P, V, x, y):
     """Points (x, y; arrays broadcast against the segments) projected onto segments from `P`
     along `V` (m, 2): (t in [0, 1], the point less the segment's start dx, dy, the point
@@ -628,6 +654,7 @@ class LanePath:
         if entry is None:
             entry = choose(0, None)
         plan = []
+        change_specs = []          # (edge, from lane, to lane, their shapes) of each lane change
         stop_marks = []            # (point index in the unfiltered list, plan entry, internal length)
         n_pts = 0
         for i, e in enumerate(self.edges):
@@ -641,6 +668,7 @@ class LanePath:
                 shape_want = self._cut_from(shape_want, start_pos)
             if entry != want and len(shape_in) >= 2 and len(shape_want) >= 2:
                 seg = self._blend(shape_in, shape_want)
+                change_specs.append((e, entry, want, shape_in, shape_want))
             else:
                 seg = shape_want
             seg = _resample(seg, self.STEP)
@@ -672,6 +700,7 @@ class LanePath:
         keep = _forward_points(P)
         new_index = np.cumsum(keep) - 1
         self._set_geometry(P[keep], [lanes[k] for k in np.nonzero(keep)[0]], sim)
+        self._set_changes(change_specs)
         # stop lines and crossings
         self.stops: list[StopLine] = []
         for idx, (ln, to_lane, via, st), internal in stop_marks:
@@ -745,7 +774,98 @@ class LanePath:
                           if all(c.lane != o.lane or abs(c.s + s_join - o.s) > 5.0 for o in new.crossings)]
         new.last_lane = tail.last_lane
         new.last_edge_start = (i1 - i0) + tail.last_edge_start
+        # the lane changes of the kept part (the last edge's is planned again with the tail)
+        kept = [c for c in self.changes if c.i0 < i1 and c.i1 > i0]
+        specs = [sp for sp in self._change_specs if any(sp[:3] == c.key for c in kept)]
+        new._set_changes(specs + list(tail._change_specs))
         return new
+
+    # --- lane changes, and holding back from one ------------------------------------------
+    # The path blends from lane to lane over the middle of an edge. The driver may hold back
+    # (``set_hold``): it then follows the lane it came in on, ``hold`` (0..1) of the way back
+    # from the path to it, until the lane changed into has room (``Autopilot._lane_change``).
+    # ``aim_at`` (the steering's look-ahead point), ``project`` and ``project_many`` (their
+    # lateral offsets: the corridor, the lidar's, the telemetry's) follow the line driven.
+    changes: tuple = ()
+    _change_specs: tuple = ()
+    hold = 0.0
+    _held = None                   # the LaneChange held back from
+    HOLD_TAIL = 30                 # points past the edge's end the held shift still applies
+
+    def _set_changes(self, specs) -> None:
+        """The :class:`LaneChange` of each (edge, from lane, to lane, from shape, to shape),
+        found in order on the path's points of that edge (labelled with the lane changed into)."""
+        self._change_specs = tuple(specs)
+        self.changes = []
+        self.hold, self._held = 0.0, None
+        runs = list(self._run_starts) + [len(self.xy)]
+        cursor = 0
+        for edge, a, b, shape_a, shape_b in specs:
+            for r in range(cursor, len(self._run_lanes)):
+                k0, k1 = int(runs[r]), int(runs[r + 1])
+                if self._run_lanes[r] == b and self.lane_of[k0][1] == edge:
+                    cursor = r + 1
+                    break
+            else:
+                continue
+            pts = self.xy[k0:k1]
+            if len(pts) < 2:
+                continue
+            h = self.heading[k0:k1]
+            nx, ny = -np.sin(h), np.cos(h)
+
+            def onto(shape):
+                P = np.asarray(shape, dtype=float)[:-1, :2]
+                V = np.asarray(shape, dtype=float)[1:, :2] - P
+                t, _, _, ex, ey, _ = _onto_segments(P, V, pts[:, 0:1], pts[:, 1:2])
+                j = np.argmin(ex * ex + ey * ey, axis=1)
+                r_ = np.arange(len(pts))
+                return np.stack([-ex[r_, j], -ey[r_, j]], axis=1)      # from the point to the lane
+
+            to_a, to_b = onto(shape_a), onto(shape_b)
+            src_lat = to_a[:, 0] * nx + to_a[:, 1] * ny
+            tgt_lat = to_b[:, 0] * nx + to_b[:, 1] * ny
+            moved = np.flatnonzero(np.abs(src_lat) > 0.05)
+            arrived = np.flatnonzero(np.abs(tgt_lat) < 0.05)
+            s0 = float(self.s[k0 + moved[0]]) if len(moved) else float(self.s[k1 - 1])
+            after = arrived[arrived >= (moved[0] if len(moved) else 0)]
+            s1 = float(self.s[k0 + after[0]]) if len(after) else float(self.s[k1 - 1])
+            self.changes.append(LaneChange(edge, a, b, k0, k1, s0, s1, float(self.s[k1 - 1]), to_a, src_lat, tgt_lat))
+
+    def set_hold(self, change: LaneChange | None, hold: float) -> None:
+        """Hold back ``hold`` (0..1) of the way to the lane ``change`` comes from (module doc)."""
+        if change is None or hold <= 0.0:
+            self.hold, self._held = 0.0, None
+        else:
+            self.hold, self._held = min(1.0, float(hold)), change
+
+    def held_lat(self, idx):
+        """The held line's lateral offset from the path (left +) at point index (or indices) idx."""
+        c = self._held
+        if c is None:
+            return np.zeros(np.shape(idx)) if np.ndim(idx) else 0.0
+        j = np.asarray(idx) - c.i0
+        inside = (j >= 0) & (j < len(c.src_lat) + self.HOLD_TAIL)
+        val = self.hold * c.src_lat[np.clip(j, 0, len(c.src_lat) - 1)] * inside
+        return val if np.ndim(idx) else float(val)
+
+    def aim_at(self, s: float) -> np.ndarray:
+        """The point the car steers for at arc length s: the path's, or the held line's."""
+        p = self.point_at(s)
+        c = self._held
+        if c is not None:
+            j = self.index_at(s) - c.i0
+            if 0 <= j < len(c.src_lat) + self.HOLD_TAIL:
+                p = p + self.hold * c.shift[min(j, len(c.shift) - 1)]
+        return p
+
+    def driven_lane(self, k: int) -> str:
+        """The lane the car drives on at point k: the path's, or the lane held to."""
+        c = self._held
+        if c is not None and self.hold >= 0.5 and c.i0 <= k < c.i1 + self.HOLD_TAIL \
+                and self.lane_of[k][0] == c.to_lane:
+            return c.from_lane
+        return self.lane_of[k][0]
 
     def _stay_in_start_lane(self, sim, start_lane, start_pos, min_change_m: float = 40.0):
         """A route that needs another lane than the car's within a few metres (a start or a
@@ -875,7 +995,10 @@ class LanePath:
             j -= 1
         a = lo + j
         side = V[j, 0] * dy[j] - V[j, 1] * dx[j]
-        return (a, float(self.s[a] + t[j] * math.sqrt(float(L2[j]))), math.copysign(math.sqrt(float(d2[j])), side))
+        off = math.copysign(math.sqrt(float(d2[j])), side)
+        if self._held is not None:
+            off -= self.held_lat(a)
+        return (a, float(self.s[a] + t[j] * math.sqrt(float(L2[j]))), off)
 
     def project_many(self, x: np.ndarray, y: np.ndarray, s0: float, s1: float) -> tuple[np.ndarray, np.ndarray]:
         """Arc length and signed lateral offset (left +) of many points, each projected onto the
@@ -896,6 +1019,8 @@ class LanePath:
         side = V[j, 0] * dy[r, j] - V[j, 1] * dx[r, j]
         off = np.sqrt(d2[r, j]) * np.where(side >= 0, 1.0, -1.0)
         s = self.s[i0 + j] + t[r, j] * np.sqrt(L2[j])
+        if self._held is not None:
+            off = off - self.held_lat(i0 + j)
         return s, off
 
     def index_at(self, s: float) -> int:
@@ -975,7 +1100,7 @@ class PurePursuit:
                 ry += ds * math.sin(heading + 0.5 * dpsi)
                 heading += dpsi
                 s_rear += ds
-        tx, ty = path.point_at(s_rear + ld)
+        tx, ty = path.aim_at(s_rear + ld)
         dist = math.hypot(tx - rx, ty - ry)
         if dist < 1e-3:
             return 0.0, 0.0

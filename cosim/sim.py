@@ -262,10 +262,20 @@ class Simulation:
         lane, pos, px, py, yaw, dist = self._snap(x, y, "start")
         if dist > cfg.max_snap_m:
             raise InputError(f"start is {dist:.0f} m from the nearest road for cars (more than {cfg.max_snap_m:.0f} m)")
+        if not np.isfinite(self.world.ground_z(px, py)[0]):
+            # (SUMO's network reaches beyond the built chunks: the car would have no ground)
+            raise InputError(f"start ({px:.0f}, {py:.0f}) m is outside the built world (its chunks cover "
+                             f"{self._world_extent()}); start inside it or build more --chunks")
         # leave room to accelerate: not in the last metres of a lane
         self.snap_info = {"start_snap_m": round(dist, 2), "start_lane": lane, "start_pos": round(pos, 1)}
         log.info("start snapped %.1f m onto lane %s", dist, lane)
         return px, py, yaw, lane, pos
+
+    def _world_extent(self) -> str:
+        b = [c["bounds_m"] for c in self.world.chunks.values()]
+        if not b:
+            return "nothing"
+        return f"x {min(v[0] for v in b):.0f}..{max(v[2] for v in b):.0f}, y {min(v[1] for v in b):.0f}..{max(v[3] for v in b):.0f} m"
 
     def _plan_route(self, lane: str, pos: float):
         try:
@@ -306,7 +316,8 @@ class Simulation:
     def ego_state(self) -> EgoState:
         st = self.vehicle.state()
         k, s_here, lat_off = self.path.project(st.x, st.y, self._path_idx)
-        lane, edge = self.path.lane_of[k]
+        edge = self.path.lane_of[k][1]
+        lane = self.path.driven_lane(k)         # (the lane held to while a lane change waits)
         lon, lat = self.world.frame.to_lonlat(st.x, st.y)
         on_road = abs(lat_off) < 3.0 and st.wheel_contact is not None
         return EgoState(t=self.t, x=st.x, y=st.y, z=st.z, yaw=st.yaw, speed=st.speed, lat=float(lat),

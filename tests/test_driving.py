@@ -1303,3 +1303,139 @@ def test_a_car_on_another_level_is_no_obstacle(monaco):
 
 def st_s(path, st) -> float:
     return float(path.project(st.x, st.y, 0)[1])
+
+
+# Helsinki: 74307860#1 (93 m; car lanes _1 and _2) on to 4243035#0: the path changes from
+# lane _1 to _2 along the edge (LanePath._blend)
+HEL_LC_EDGE, HEL_LC_NEXT = "74307860#1", "4243035#0"
+
+
+def _lc_start_goal(sim):
+    """(lat, lon) 5 m into HEL_LC_EDGE's lane _1, and 30 m into HEL_LC_NEXT."""
+    s = sim.traffic.sumo
+
+    def at(lane, pos):
+        P = np.asarray(s.lane.getShape(lane), dtype=float)[:, :2]
+        d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(P, axis=0).T))])
+        x, y = np.interp(pos, d, P[:, 0]), np.interp(pos, d, P[:, 1])
+        lon, lat = sim.world.frame.to_lonlat(x, y)
+        return (float(lat), float(lon))
+
+    return at(HEL_LC_EDGE + "_1", 5.0), at(HEL_LC_NEXT + "_0", 30.0)
+
+
+def test_a_lane_change_holds_back_for_a_car_in_the_lane_changed_into(helsinki):
+    """Gap acceptance (Autopilot._lane_change): the path moves over to the next lane along an
+    edge; a vehicle in that lane without room for the car holds it in its own lane (the held
+    line: LanePath.set_hold), and the car moves over once the vehicle has passed. (Blending
+    over regardless, the car moved in beside a faster car: Portland, seed 12.) Checked on the
+    geometry (the held line is the lane the car came in on), on the rule (a follower coming
+    up fast, one beside, one far behind, one in the car's own lane, a standing queue) and in
+    the loop with SUMO: a car in the target lane catching up from behind passes first, and
+    SUMO counts no collision."""
+    import types
+
+    from cosim.traffic import ActorsSnapshot
+
+    probe = start_sim(helsinki, start=HEL_MID)
+    try:
+        start, goal = _lc_start_goal(probe)
+    finally:
+        probe.teardown()
+    sim = start_sim(helsinki, start=start, goal=goal, speed_mps=8.0)
+    try:
+        ap, path, tr = sim.driver, sim.path, sim.traffic
+        s = tr.sumo
+        changes = [c for c in path.changes if c.edge == HEL_LC_EDGE]
+        assert len(changes) == 1, [c.key for c in path.changes]
+        c = changes[0]
+        assert (c.from_lane, c.to_lane) == (HEL_LC_EDGE + "_1", HEL_LC_EDGE + "_2")
+        assert c.s0 < c.s1 < c.s_end
+        # the geometry: before the blend the path is the lane come in on, after it the target
+        # lane; the two a lane's width apart
+        assert abs(c.src_lat[0]) < 0.05 and abs(c.tgt_lat[-1]) < 0.05
+        width = float(s.lane.getWidth(c.to_lane))
+        assert abs(abs(c.src_lat[-1]) - width) < 0.5
+        src = np.asarray(s.lane.getShape(c.from_lane), dtype=float)[:, :2]
+
+        def to_src(p):
+            P, V = src[:-1], np.diff(src, axis=0)
+            t = np.clip(((p - P) * V).sum(axis=1) / (V * V).sum(axis=1), 0, 1)
+            return float(np.min(np.hypot(*(P + t[:, None] * V - p).T)))
+
+        s_mid = 0.5 * (c.s0 + c.s1)
+        assert to_src(path.aim_at(s_mid)) > 0.8          # the path: halfway over
+        path.set_hold(c, 1.0)
+        assert to_src(path.aim_at(s_mid)) < 0.1          # held: on the lane come in on
+        px, py = path.aim_at(s_mid)
+        assert abs(path.project(px, py, path.index_at(s_mid))[2]) < 0.1
+        assert path.driven_lane(path.index_at(s_mid)) == c.from_lane
+        path.set_hold(None, 0.0)
+        assert path.driven_lane(path.index_at(s_mid)) == c.to_lane
+
+        # the rule, with vehicles placed in the lanes (the car 10 m before the blend at 8 m/s)
+        s_car = c.s0 - 10.0
+        x0, y0 = path.point_at(s_car)
+        h = path.heading_at(s_car)
+        car = types.SimpleNamespace(x=float(x0), y=float(y0), yaw=h, speed=8.0)
+        k = path.index_at(s_car)
+        j = k - c.i0
+        tgt_off = float(c.tgt_lat[max(j, 0)])
+
+        def snap(*vehicles):
+            n = len(vehicles)
+            xs, ys, sp = [], [], []
+            for ds, off, v in vehicles:
+                px, py = path.point_at(s_car + ds)
+                hh = path.heading_at(s_car + ds)
+                if s_car + ds < 0.0:                 # behind the path's start: on along its line
+                    px, py = px + (s_car + ds) * math.cos(hh), py + (s_car + ds) * math.sin(hh)
+                xs.append(px - off * math.sin(hh))
+                ys.append(py + off * math.cos(hh))
+                sp.append(v)
+            ones = np.ones(n)
+            return ActorsSnapshot(0.0, np.array([f"v{i}" for i in range(n)], dtype=object),
+                                  np.array(["passenger"] * n, dtype=object), np.array(xs), np.array(ys),
+                                  np.full(n, h), 4.5 * ones, 1.8 * ones, 1.5 * ones, np.array(sp), 0.0 * ones,
+                                  np.array([c.to_lane] * n, dtype=object))
+
+        blk = ap._lc_blocker(c, car, path, s_car, 8.0, snap((-12.0, tgt_off, 12.0)))
+        assert blk is not None and blk[0] == "v0" and blk[2] == "behind"         # coming up fast
+        assert ap._lc_blocker(c, car, path, s_car, 8.0, snap((-60.0, tgt_off, 12.0))) is None   # far
+        assert ap._lc_blocker(c, car, path, s_car, 8.0, snap((-12.0, tgt_off, 6.0))) is None    # slower
+        assert ap._lc_blocker(c, car, path, s_car, 8.0, snap((1.0, tgt_off, 8.0)))[2] == "beside"
+        assert ap._lc_blocker(c, car, path, s_car, 8.0, snap((-12.0, 0.0, 12.0))) is None      # own lane
+        assert ap._lc_blocker(c, car, path, s_car, 8.0, snap((6.0, tgt_off, 4.0)))[2] == "ahead"
+        # a queue (slower than LC_SLOW_MPS): beside or ahead no hold (the car merges behind it),
+        # behind it needs 1 m
+        still = types.SimpleNamespace(x=float(x0), y=float(y0), yaw=h, speed=0.0)
+        assert ap._lc_blocker(c, still, path, s_car, 0.0, snap((0.0, tgt_off, 0.0), (6.0, tgt_off, 1.0))) is None
+        assert ap._lc_blocker(c, still, path, s_car, 0.0, snap((-6.0, tgt_off, 1.0))) is None    # 1.5 m
+        assert ap._lc_blocker(c, still, path, s_car, 0.0, snap((-4.9, tgt_off, 1.0)))[2] == "behind"   # 0.4 m
+
+        # the loop: a SUMO car in lane _2 comes up from behind faster than the car
+        ego_lane, sumo_lane_of_ego, order = None, [], []
+        added = False
+        s.route.add("r_lc", [HEL_LC_EDGE, HEL_LC_NEXT])
+        for _ in range(400):
+            ego = sim.step()
+            if not added and ego.edge == HEL_LC_EDGE and s.vehicle.getLanePosition("ego") > 20.0:
+                s.vehicle.add("chaser", "r_lc", typeID="DEFAULT_VEHTYPE", depart="now", departPos="0",
+                              departSpeed="10", departLane="2")
+                s.vehicle.setMaxSpeed("chaser", 10.0)
+                added = True
+            if added and "chaser" in s.vehicle.getIDList() and s.vehicle.getRoadID("ego") == HEL_LC_EDGE:
+                ego_lane = s.vehicle.getLaneID("ego")
+                ahead = s.vehicle.getRoadID("chaser") != HEL_LC_EDGE or \
+                    s.vehicle.getLanePosition("chaser") - 5.0 > s.vehicle.getLanePosition("ego")
+                sumo_lane_of_ego.append(ego_lane)
+                order.append((ego_lane, ahead))
+            if ego.edge == HEL_LC_NEXT:
+                break
+        assert added and c.to_lane in sumo_lane_of_ego, "the car never changed lanes"
+        first = next(i for i, (ln, _) in enumerate(order) if ln == c.to_lane)
+        assert order[first][1], "the car moved over before the chaser had passed it"
+        assert ap.stats.lane_change_waits >= 1
+        assert tr.stats.collisions == 0 and not sim.collision_log
+    finally:
+        sim.teardown()
