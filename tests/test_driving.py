@@ -156,6 +156,13 @@ def test_goal_far_from_roads_is_a_clear_error(helsinki):
         start_sim(helsinki, goal=HEL_OFF_ROAD, duration_s=5)
 
 
+def test_a_start_outside_the_built_world_is_a_clear_error(helsinki):
+    """SUMO's network reaches beyond the built chunks (netconvert gets the whole extract): a
+    start on a road there had no ground under the car (its height NaN, standing for good)."""
+    with pytest.raises(InputError, match=r"outside the built world .*x -500\.\.500"):
+        start_sim(helsinki, start=(60.167088, 24.951134), duration_s=5)      # 507 m east
+
+
 def test_stops_at_red_and_at_yellow_when_it_can(helsinki):
     sim = start_sim(helsinki, start=HEL_MID, goal=HEL_GOAL, speed_mps=10.0, duration_s=120)
     try:
