@@ -63,6 +63,7 @@ TMP_PREFIX = "cosim-sumo-"      # SUMO's folder for its logs: <tmp>/cosim-sumo-<
 PROBE_ID = "cosim_probe"
 CONTEXT_MARGIN = 20.0   # m: front-bumper anchors vs centre distances (half a bus + half the ego)
 DEFAULT_CONTEXT_RADIUS = 150.0
+EGO_JOINT_NUDGE_M = 0.3       # a front bumper in the gap at a lane joint is mapped this far on (_across_joint)
 EGO_MATCH_RADIUS_M = 15.0      # the ego is mapped onto a lane within this distance, else off the network
 PERSON_YIELD_RANGE_M = 15.0    # pedestrians this near the ego are checked (see _persons_yield)
 PERSON_YIELD_MARGIN_M = 0.5    # they stop this far outside the ego's footprint
@@ -338,6 +339,7 @@ class SumoTraffic(Component):
         self._held: dict[str, float] = {}  # pedestrians stopped for the ego: id -> their own pace
         self._straddle_held: set = set()    # vehicles kept behind an ego that straddles their lane
         self._straddle_lat: tuple = ("", 0.0)   # the ego's lane and lateral position at the last step
+        self._lane_ends: dict = {}               # lane -> its last segment (_across_joint)
         self._lane_widths: dict = {}
         self._ego_ctx_res: dict | None = None  # this step's context results (_ego_context)
         self._moved_persons: dict = {}     # persons a swap placed by moveToXY: id -> (x, y, speed)
@@ -853,6 +855,7 @@ class SumoTraffic(Component):
             x += self._unstick_sign * EGO_UNSTICK_M * math.cos(yaw)
             y += self._unstick_sign * EGO_UNSTICK_M * math.sin(yaw)
         fx, fy = center_to_front(x, y, angle, self._ego_spec["length"])
+        fx, fy = self._across_joint(fx, fy, yaw)
         if self._ego_clear_due:
             self._ego_clear_due = False
             self._clear_ego_footprint()
@@ -869,6 +872,33 @@ class SumoTraffic(Component):
         self._ego_off_network = False
         self._ego_pending_speed = max(0.0, float(speed))
         return True
+
+    def _across_joint(self, fx: float, fy: float, yaw: float) -> tuple[float, float]:
+        """Where a lane ends and the next begins at an angle, ``moveToXY`` finds no lane for a
+        point just past the end on the outer side of the bend (its perpendicular foot lies
+        beyond the one lane's end and before the other's start), and SUMO takes the ego off the
+        network for that step (Helsinki, seed 18: for that step a car changed into the ego's
+        lane 0.8 m behind it, into the ego's tail when it came back; 0.2 m past the end, 0.23 m
+        to the side). A front bumper past the end of the lane the ego was on, within 2 m of it,
+        is mapped EGO_JOINT_NUDGE_M further on, in the next lane."""
+        lane = self._straddle_lat[0]
+        if not lane:
+            return fx, fy
+        seg = self._lane_ends.get(lane)
+        if seg is None:
+            try:
+                P = self._sim.lane.getShape(lane)
+            except self._exc:
+                return fx, fy
+            seg = self._lane_ends[lane] = (tuple(P[-2]), tuple(P[-1])) if len(P) >= 2 else None
+            if seg is None:
+                return fx, fy
+        (ax, ay), (bx, by) = seg
+        ux, uy = bx - ax, by - ay
+        L = math.hypot(ux, uy)
+        if L < 1e-6 or ((fx - ax) * ux + (fy - ay) * uy) / L <= L or math.hypot(fx - bx, fy - by) > 2.0:
+            return fx, fy
+        return fx + EGO_JOINT_NUDGE_M * math.cos(yaw), fy + EGO_JOINT_NUDGE_M * math.sin(yaw)
 
     def set_ego_route(self, edges) -> None:
         """The edges the ego will drive (its planned path). Kept as its route in SUMO from the

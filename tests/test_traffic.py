@@ -1023,3 +1023,63 @@ def test_a_vehicle_standing_for_no_reason_sumo_shows_is_taken_out_after_a_stando
     ids = set(s.vehicle.getIDList())
     assert "alone" not in ids and {"front", "queued"} <= ids
     assert t.stats.released == 1
+
+
+def test_the_ego_stays_on_the_network_across_a_lane_joint_at_a_bend(traffic):
+    """``moveToXY`` finds no lane for a point just past a lane's end on the outer side of a
+    bend at the joint with the next lane (the perpendicular foot lies beyond the one lane's end
+    and before the other's start): SUMO took the ego off the network for that step (Helsinki,
+    seed 18: meanwhile a car changed into its lane 0.8 m behind it). Found on Helsinki's joints
+    where SUMO itself maps nothing; the ego, coming from the lane before, stays on a lane."""
+    from cosim.driving import _lane_allows
+    from cosim.traffic import yaw_to_sumo_angle
+
+    t = traffic()
+    s = t.sumo
+    t.add_ego([passenger_lanes(s, 60.0)[0][0].rsplit("_", 1)[0]])
+    t.step()
+
+    def wedge(lane):
+        """A point 0.25 m off a lane's end, on the outer side of its bend into its first link's
+        junction lane (one cars may use), and that lane's heading there; None where the joint is
+        straight or turns by more than 45 degrees."""
+        P = np.asarray(s.lane.getShape(lane), dtype=float)[:, :2]
+        links = [ln for ln in s.lane.getLinks(lane) if ln[4] and _lane_allows(s, ln[4])]
+        if len(P) < 2 or not links:
+            return None
+        Q = np.asarray(s.lane.getShape(links[0][4]), dtype=float)[:, :2]
+        if len(Q) < 2 or np.hypot(*(Q[0] - P[-1])) > 0.01:
+            return None
+        ua = (P[-1] - P[-2]) / np.hypot(*(P[-1] - P[-2]))
+        ub = (Q[1] - Q[0]) / np.hypot(*(Q[1] - Q[0]))
+        turn = ua[0] * ub[1] - ua[1] * ub[0]                   # + = a left bend
+        if not math.radians(8.0) < abs(math.atan2(turn, float(ua @ ub))) < math.radians(45.0):
+            return None                                        # straight, or a sharp turn
+        na, nb = np.array([-ua[1], ua[0]]), np.array([-ub[1], ub[0]])
+        out = -(na + nb) / np.hypot(*(na + nb)) * math.copysign(1.0, turn)   # the outer side
+        return P[-1] + 0.25 * out, math.atan2(ua[1], ua[0])
+
+    checked = 0
+    for lane, length in passenger_lanes(s, 20.0):
+        got = wedge(lane)
+        if got is None:
+            continue
+        (wx, wy), yaw = got
+        # SUMO alone: off the network there
+        s.vehicle.moveToXY(EGO_ID, "", -1, float(wx), float(wy), yaw_to_sumo_angle(yaw), keepRoute=2,
+                           matchThreshold=15.0)
+        t.step()
+        if s.vehicle.getLaneID(EGO_ID) != "":
+            continue
+        # the loop's way: on the lane 2 m before its end, then the front bumper at the point
+        fx, fy, angle = lane_pose(s, lane, length - 2.0)
+        t.set_ego_pose(*front_to_center(fx, fy, angle, 4.5), sumo_angle_to_yaw(angle), 5.0)
+        t.step()
+        assert s.vehicle.getLaneID(EGO_ID) == lane
+        t.set_ego_pose(*front_to_center(float(wx), float(wy), yaw_to_sumo_angle(yaw), 4.5), yaw, 5.0)
+        t.step()
+        assert s.vehicle.getLaneID(EGO_ID) != "", lane
+        checked += 1
+        if checked == 5:
+            break
+    assert checked >= 3
