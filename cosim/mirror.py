@@ -326,6 +326,13 @@ class ActorMirror:
             pb.resetBasePositionAndOrientation(body, pos, quat, physicsClientId=c)
         return 0
 
+    def chain_boxes(self, aid) -> list | None:
+        """A long vehicle's boxes (x, y, yaw, length, width), front first, as last mirrored: in
+        a turn its body is this bent chain, not the straight box of its snapshot; None for
+        another actor."""
+        got = self._chain_last.get(aid)
+        return got[1] if got is not None else None
+
     def body_actors(self) -> dict:
         """Body id -> actor id, for every mirrored body (a long vehicle's boxes all map to it)."""
         out = {b: a for a, (b, _) in self.active.items()}

@@ -1446,3 +1446,62 @@ def test_a_lane_change_holds_back_for_a_car_in_the_lane_changed_into(helsinki):
         assert tr.stats.collisions == 0 and not sim.collision_log
     finally:
         sim.teardown()
+
+
+def test_the_sweep_sees_a_turning_bus_where_its_body_bends(helsinki):
+    """A bus or a truck is mirrored as a chain of boxes along the path its front took; in a
+    turn its tail lies inside the straight box of its snapshot's heading. The car's sweep
+    takes the chain (Helsinki, dense, seed 22: a 12 m bus turning past the standing car, its
+    tail outside that straight box, touched the car as the car drove off). A bus mirrored along
+    a 90-degree left turn of 8 m radius: the car just below the chain's tail, heading into it,
+    is stopped by the sweep; with the straight box alone (no chain known for it), not."""
+    import types
+
+    from cosim.traffic import ActorsSnapshot
+
+    sim = start_sim(helsinki, start=HEL_MID)
+    try:
+        ap, path, mirror = sim.driver, sim.path, sim.mirror
+        st = sim.vehicle.state()
+        s_e = s_of(sim, st.x, st.y)[0] + 20.0
+        ex, ey = path.point_at(s_e)
+        h = path.heading_at(s_e)
+        # the bus's frame: it comes along +x, turns left about (0, R) to head +y; the car there
+        # at (1.5, -5.25), heading +y, its front 3 m before the chain's tail
+        R, L = 8.0, 12.0
+        car_local = np.array([1.5, -5.25])
+        rot = h - math.pi / 2.0
+        cr, sr = math.cos(rot), math.sin(rot)
+
+        def world(p):
+            d = np.asarray(p, dtype=float) - car_local
+            return float(ex + cr * d[0] - sr * d[1]), float(ey + sr * d[0] + cr * d[1])
+
+        fronts = [((u, 0.0), 0.0) for u in np.arange(-L, 0.0, 0.5)]
+        fronts += [((R * math.sin(a), R - R * math.cos(a)), a) for a in np.linspace(0.0, math.pi / 2.0, 30)]
+        ego = (float(ex), float(ey), h, 4.5, 1.8, float(st.z))
+
+        def snap(front, heading, name="bus1"):
+            fx, fy = world(front)
+            yaw = heading + rot
+            one = lambda v: np.array([v])                 # noqa: E731
+            return ActorsSnapshot(0.0, np.array([name], dtype=object), np.array(["bus"], dtype=object),
+                                  one(fx - 0.5 * L * math.cos(yaw)), one(fy - 0.5 * L * math.sin(yaw)), one(yaw),
+                                  one(L), one(2.5), one(3.0), one(3.0), one(0.0), np.array(["x_0"], dtype=object))
+
+        for front, heading in fronts:
+            last = snap(front, heading)
+            mirror.update(last, ego=ego)
+        chain = mirror.chain_boxes("bus1")
+        assert chain is not None and len(chain) >= 3
+        assert abs(math.remainder(chain[-1][2] - chain[0][2], 2 * math.pi)) > math.radians(45)   # bent
+        car = types.SimpleNamespace(x=float(ex), y=float(ey), yaw=h, speed=2.0, steer=0.0)
+        ap._k, _, ap._lat = path.project(ex, ey, path.index_at(s_e))
+        ap._lat = 1.0                                    # (off the path: the sweep rolls)
+        touch = ap._sweep(car, path, s_e, last, ap.pp)
+        assert touch is not None and touch[1] == "bus1", touch
+        straight = snap(*fronts[-1], name="bus2")        # the same bus, no chain known
+        assert mirror.chain_boxes("bus2") is None
+        assert ap._sweep(car, path, s_e, straight, ap.pp) is None
+    finally:
+        sim.teardown()
