@@ -1274,10 +1274,34 @@ class SumoTraffic(Component):
         if clean is not None:
             return clean, True
         if fallback is not None:
-            return fallback, False
+            # every long route drawn has a step the car cannot drive: drive it only up to the
+            # last edge before that step from which the car can still go on (Monaco, seed 25: a
+            # route drawn down a one-way street to a hairpin of 3.1 m radius; the car ran 2.4 m
+            # wide into a building). At the end the car draws again (random_extension)
+            cut = self._drivable_head(fallback)
+            return (cut, False) if len(cut) >= 2 else (fallback[:1], False)
         if len(best) < 2:
             raise SimulationError(f"no route for the ego from edge {edge}")
         return best, False
+
+    def _drivable_head(self, route: list) -> list:
+        """``route`` (around what it can go around: ``without_turnarounds``) up to its first
+        step the car cannot drive or tunnel, and back from there to the last edge from which
+        the car can drive on (``escapes``: not into a one-way street down to that step)."""
+        from .driving import escapes, is_tunnel, undrivable_steps, without_turnarounds
+
+        s = self._require()
+        fixed = without_turnarounds(s, list(route))[0]
+        bad = undrivable_steps(s, fixed)
+        end = len(fixed)
+        if bad:
+            end = next(k for k in range(len(fixed) - 1) if (fixed[k], fixed[k + 1]) == bad[0]) + 1
+        tun = next((k for k in range(1, end) if is_tunnel(s, fixed[k])), None)
+        if tun is not None:
+            end = tun
+        while end > 1 and not escapes(s, fixed[end - 1]):
+            end -= 1
+        return fixed[:end]
 
     def plan_route(self, lane: str, pos: float, goal_xy=None, rng_state=None, max_goal_snap_m: float = 1e9,
                    min_len: float = 800.0) -> dict:

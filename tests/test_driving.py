@@ -1505,3 +1505,55 @@ def test_the_sweep_sees_a_turning_bus_where_its_body_bends(helsinki):
         assert ap._sweep(car, path, s_e, straight, ap.pp) is None
     finally:
         sim.teardown()
+
+
+def test_a_route_with_a_turn_the_car_cannot_make_is_driven_only_up_to_where_it_can_go_on(monaco):
+    """When every long route drawn has a step the car cannot drive (Monaco, seed 25: a one-way
+    street down to a hairpin of 3.1 m radius; the car ran 2.4 m wide into a building), the
+    route is cut before that step, back to the last edge from which the car can drive on
+    (``SumoTraffic._drivable_head``); the car draws again at its end. On Monaco's network: a
+    route SUMO finds through such a step, with no way around it."""
+    from cosim.driving import escapes, undrivable_steps, without_turnarounds
+
+    sim = start_sim(monaco)
+    try:
+        tr = sim.traffic
+        s = tr.sumo
+        incoming = tr.incoming_lanes()
+        found = None
+        for a in (e for e in s.edge.getIDList() if not e.startswith(":")):
+            for ln in range(s.edge.getLaneNumber(a)):
+                for link in s.lane.getLinks(f"{a}_{ln}"):
+                    b = link[0].rsplit("_", 1)[0]
+                    if b.startswith(":") or not undrivable_steps(s, [a, b]):
+                        continue
+                    # three edges back up the road into it
+                    src, lane = a, f"{a}_{ln}"
+                    for _ in range(3):
+                        ups = [u for u in incoming.get(lane, ()) if not u.startswith(":")]
+                        if not ups:
+                            break
+                        lane = ups[0]
+                        src = lane.rsplit("_", 1)[0]
+                    if src == a:
+                        continue
+                    try:
+                        route = list(s.simulation.findRoute(src, b, vType="DEFAULT_VEHTYPE").edges)
+                    except Exception:
+                        continue                # (a road cars may not start on)
+                    fixed = without_turnarounds(s, route)[0]
+                    if len(route) >= 3 and (a, b) in undrivable_steps(s, fixed):
+                        found = (a, b, route, fixed)
+                        break
+                if found:
+                    break
+            if found:
+                break
+        assert found is not None, "no step the car cannot drive without a way around in Monaco"
+        a, b, route, fixed = found
+        head = tr._drivable_head(route)
+        assert head == fixed[:len(head)] and len(head) < len(fixed)
+        assert (a, b) not in list(zip(head, head[1:])) and not undrivable_steps(s, head)
+        assert len(head) == 1 or escapes(s, head[-1])
+    finally:
+        sim.teardown()
