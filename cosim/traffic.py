@@ -1277,9 +1277,13 @@ class SumoTraffic(Component):
             # every long route drawn has a step the car cannot drive: drive it only up to the
             # last edge before that step from which the car can still go on (Monaco, seed 25: a
             # route drawn down a one-way street to a hairpin of 3.1 m radius; the car ran 2.4 m
-            # wide into a building). At the end the car draws again (random_extension)
+            # wide into a building). At the end the car draws again (random_extension). Where
+            # it cannot go on from anywhere on the way (up the one-way street already), it has
+            # no other way than that step: the route all the same
+            from .driving import escapes
+
             cut = self._drivable_head(fallback)
-            return (cut, False) if len(cut) >= 2 else (fallback[:1], False)
+            return (cut, False) if escapes(self._require(), cut[-1]) else (fallback, False)
         if len(best) < 2:
             raise SimulationError(f"no route for the ego from edge {edge}")
         return best, False
