@@ -339,7 +339,7 @@ class SumoTraffic(Component):
         self._held: dict[str, float] = {}  # pedestrians stopped for the ego: id -> their own pace
         self._straddle_held: set = set()    # vehicles kept behind an ego that straddles their lane
         self._straddle_lat: tuple = ("", 0.0)   # the ego's lane and lateral position at the last step
-        self._lane_ends: dict = {}               # lane -> its last segment (_across_joint)
+        self._lane_ends: dict = {}               # lane -> its last segment and its next lanes' first (_across_joint)
         self._lane_widths: dict = {}
         self._ego_ctx_res: dict | None = None  # this step's context results (_ego_context)
         self._moved_persons: dict = {}     # persons a swap placed by moveToXY: id -> (x, y, speed)
@@ -884,21 +884,47 @@ class SumoTraffic(Component):
         lane = self._straddle_lat[0]
         if not lane:
             return fx, fy
-        seg = self._lane_ends.get(lane)
-        if seg is None:
-            try:
-                P = self._sim.lane.getShape(lane)
-            except self._exc:
-                return fx, fy
-            seg = self._lane_ends[lane] = (tuple(P[-2]), tuple(P[-1])) if len(P) >= 2 else None
-            if seg is None:
-                return fx, fy
-        (ax, ay), (bx, by) = seg
+        ends = self._lane_ends.get(lane)
+        if ends is None:
+            ends = self._lane_ends[lane] = self._joint_segments(lane)
+        if not ends:
+            return fx, fy
+        (ax, ay), (bx, by) = ends[0]
         ux, uy = bx - ax, by - ay
         L = math.hypot(ux, uy)
         if L < 1e-6 or ((fx - ax) * ux + (fy - ay) * uy) / L <= L or math.hypot(fx - bx, fy - by) > 2.0:
             return fx, fy
+        # only in the wedge: where the point's foot is on a next lane, SUMO maps it there, and a
+        # point nudged further on along a heading still across the next lane can map onto the
+        # lane beside it, the other way (Kouvola motorway, seed 28: the ego turning onto a road
+        # 1.8 m wide of its lane went onto the oncoming lane, and the truck on it hit it)
+        for (qx, qy), (rx, ry) in ends[1:]:
+            vx, vy = rx - qx, ry - qy
+            if (fx - qx) * vx + (fy - qy) * vy >= 0.0:
+                return fx, fy
         return fx + EGO_JOINT_NUDGE_M * math.cos(yaw), fy + EGO_JOINT_NUDGE_M * math.sin(yaw)
+
+    def _joint_segments(self, lane: str) -> tuple:
+        """A lane's last segment, then the first segment of each lane a vehicle goes on to from
+        it (the junction lane of each link, or the lane after it); () where the shape is short."""
+        s = self._sim
+        try:
+            P = s.lane.getShape(lane)
+            links = s.lane.getLinks(lane)
+        except self._exc:
+            return ()
+        if len(P) < 2:
+            return ()
+        out = [(tuple(P[-2][:2]), tuple(P[-1][:2]))]
+        for ln in links:
+            nxt = ln[4] or ln[0]
+            try:
+                Q = s.lane.getShape(nxt)
+            except self._exc:
+                continue
+            if len(Q) >= 2:
+                out.append((tuple(Q[0][:2]), tuple(Q[1][:2])))
+        return tuple(out)
 
     def set_ego_route(self, edges) -> None:
         """The edges the ego will drive (its planned path). Kept as its route in SUMO from the

@@ -12,7 +12,7 @@ from cosim.traffic import (EGO_ID, SumoTraffic, _boxes_overlap, center_to_front,
                            sumo_angle_to_yaw, yaw_to_sumo_angle)
 from netgen.errors import InputError, SimulationError
 
-from sumo_fixtures import build_helsinki
+from sumo_fixtures import REPO, build_helsinki
 
 
 # --- fixtures -------------------------------------------------------------------------------
@@ -1083,3 +1083,50 @@ def test_the_ego_stays_on_the_network_across_a_lane_joint_at_a_bend(traffic):
         if checked == 5:
             break
     assert checked >= 3
+
+
+def test_the_ego_is_not_nudged_at_a_joint_where_the_next_lane_takes_it(tmp_path):
+    """The nudge across a lane joint (above) is for the wedge only. Kouvola motorway, seed 28:
+    the ego came off the junction lane 1.8 m wide of the road it turned onto, its front bumper
+    past the junction lane's end but alongside the start of the next lane. Nudged 0.3 m on,
+    SUMO mapped it onto the oncoming lane beside (by distance and a heading 30 degrees off the
+    road's), and the truck on that lane ran into it. Real poses of that drive, on the real
+    network: SUMO alone maps the nudged point onto the oncoming lane; the ego, driven there
+    through ``set_ego_pose``, stays on the road it turned onto."""
+    from sumo_fixtures import build_net
+
+    net = build_net(REPO / "netgen/presets/kouvola.osm.pbf", 60.5316, 26.9602, tmp_path, name="kouvola")
+    # the front bumper (x, y), SUMO's angle and the speed, every 0.1 s (the last one as SUMO
+    # got it, nudged, then without the nudge)
+    fronts = [(-930.1280, -645.0891, 48.025, 1.107), (-929.9770, -645.0497, 49.150, 1.292),
+              (-929.8050, -645.0087, 50.423, 1.477), (-929.6120, -644.9674, 51.845, 1.661)]
+    nudged = (-929.1637, -644.7568, 53.447, 1.845)
+    last = (nudged[0] - 0.3 * math.sin(math.radians(nudged[2])),
+            nudged[1] - 0.3 * math.cos(math.radians(nudged[2])), nudged[2], nudged[3])
+    route = ["-62061735#0", "5184590#0"]
+
+    def drive(through_pose):
+        t = SumoTraffic(net, ())
+        t.setup()
+        try:
+            t.add_ego(route)
+            t.step()
+            s = t.sumo
+            seen = []
+            for fx, fy, angle, v in [fronts[0]] * 3 + fronts + [nudged if not through_pose else last]:
+                if through_pose:
+                    t.set_ego_pose(*front_to_center(fx, fy, angle, 4.5), sumo_angle_to_yaw(angle), v)
+                else:
+                    s.vehicle.setPreviousSpeed(EGO_ID, v)
+                    s.vehicle.moveToXY(EGO_ID, "", -1, fx, fy, angle, keepRoute=2, matchThreshold=15.0)
+                t.step()
+                seen.append(s.vehicle.getLaneID(EGO_ID))
+            return seen
+        finally:
+            t.teardown()
+
+    alone = drive(through_pose=False)
+    assert alone[-2].startswith(":36156596_") and alone[-1] == "-5184590#0_1", alone
+    ours = drive(through_pose=True)
+    assert ours[-2].startswith(":36156596_"), ours
+    assert ours[-1] == "5184590#0_1", ours
