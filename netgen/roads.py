@@ -29,7 +29,9 @@ polygons, :func:`carriageway_parts`, made on demand from the network alone.
 
 A vehicle lane through a junction whose polygon misses part of it (netconvert's polygon of a
 junction on odd geometry can) gets a strip of its own, element ``junction_lane``
-(:func:`junction_gaps`).
+(:func:`junction_gaps`). The ground left bare between a lane's square end and a junction
+border at an angle to it is meshed with the junction (:func:`_lane_end_gaps`), and a junction
+polygon that crosses itself as the polygons of its valid form.
 
 Sidewalk lanes are left out where they lie on another road's vehicle lane or junction
 (:func:`_sidewalks_off_other_roads`). A road that overlaps a higher-ranked one without meeting
@@ -45,6 +47,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from functools import cached_property
 from operator import attrgetter
+import types
 
 import mapbox_earcut
 import numpy as np
@@ -239,10 +242,10 @@ def _strips(C, gid, z, halfw, lift=0.0, seg_mask=None, tilt=None):
     return v, f[order], fg[order]
 
 
-def _top_surface_z(xy, parts, cell: float = 8.0):
-    """Height of the highest triangle of `parts` (MeshParts) over each point of `xy` (n, 2);
-    NaN where there is none."""
-    top = np.full(len(xy), -np.inf)
+def _top_surface_z(xy, parts, cell: float = 8.0, lowest: bool = False):
+    """Height of the highest triangle of `parts` (MeshParts) over each point of `xy` (n, 2)
+    (with `lowest`, of the lowest); NaN where there is none."""
+    top = np.full(len(xy), np.inf if lowest else -np.inf)
     if not len(xy):
         return np.full(0, np.nan)
     # only the triangles that can hold a point: with a corner in a cell next to one of a
@@ -291,7 +294,7 @@ def _top_surface_z(xy, parts, cell: float = 8.0):
     l2 = ((c[:, 1] - a[:, 1]) * (x - c[:, 0]) + (a[:, 0] - c[:, 0]) * (y - c[:, 1])) / det[ti]
     inside = (l1 >= -1e-9) & (l2 >= -1e-9) & (l1 + l2 <= 1.0 + 1e-9)
     z = l1 * a[:, 2] + l2 * b[:, 2] + (1.0 - l1 - l2) * c[:, 2]
-    np.maximum.at(top, pi[inside], z[inside])
+    (np.minimum if lowest else np.maximum).at(top, pi[inside], z[inside])
     top[~np.isfinite(top)] = np.nan
     return top
 
@@ -518,6 +521,110 @@ def _junction_gaps(net) -> tuple[list, list]:
     n_out = 0.5 * np.bincount(dg[out], minlength=len(sel))
     off = [sel[i] for i in np.flatnonzero(n_out >= JUNCTION_GAP_M)]
     return [jids[k] for k in off], [lanes[k] for k in off]
+
+
+#: a lane's end is extended this far at most (m) towards its junction's border (_lane_end_gaps)
+END_GAP_REACH_M = 2.0
+#: the lanes' strips within this far of their ends (m) make the carriageway around a junction
+END_STRIP_REACH_M = 4.0
+
+
+def _lane_end_gaps(edges, lane_edge, C, cg, cs, ctot, nrm, drive, jrings) -> tuple[list, np.ndarray]:
+    """Bare ground in front of vehicle lanes' ends at junctions: ([(junction id, open ring (n,
+    2))], the rows of the lane points near the ends there). A lane's strip ends square to its
+    first (last) segment, and netconvert's junction border can run at an angle to it: between
+    the two a triangle of the lane's width was left bare, a notch at the road's edge or, with
+    the lane beside leaning the other way, a hole (Monaco, junction 273245248: 0.56 m2 in a
+    lane's way, over ground 2 m below the road; the car's wheel caught its far edge). Only
+    junctions with a lane end corner more than 5 cm off their polygon are looked at. There,
+    each lane's end is extended END_GAP_REACH_M across its width towards the junction; what
+    of that neither the polygon nor a lane's strip near its end covers (slivers under 10 cm
+    left out), and touches both the lane's end and the polygon, is the gap."""
+    none = ([], np.zeros(0, dtype=np.int64))
+    if not len(cg) or not jrings:
+        return none
+    first = np.r_[0, np.nonzero(cg[1:] != cg[:-1])[0] + 1]
+    last = np.r_[first[1:] - 1, len(cg) - 1]
+    # lane ends at junctions with a polygon: the junction, the end's row, the next row in
+    ej, ea, en = [], [], []
+    for a, b in zip(first[drive[cg[first]]], last[drive[cg[first]]]):
+        if b <= a:
+            continue
+        e = edges[lane_edge[cg[a]]]
+        if e.from_node in jrings:
+            ej.append(e.from_node), ea.append(a), en.append(a + 1)
+        if e.to_node in jrings:
+            ej.append(e.to_node), ea.append(b), en.append(b - 1)
+    if not ej:
+        return none
+    ea, en = np.array(ea), np.array(en)
+    jids, jnum = np.unique(np.array(ej), return_inverse=True)
+    JR, jg = _concat([jrings[j] for j in jids])
+    jarr = shapely.polygons(shapely.linearrings(JR, indices=jg))
+    bad = ~shapely.is_valid(jarr)
+    jarr[bad] = shapely.make_valid(jarr[bad])
+    off = np.maximum(shapely.distance(jarr[jnum], shapely.points(C[ea] + nrm[ea])),
+                     shapely.distance(jarr[jnum], shapely.points(C[ea] - nrm[ea])))
+    cand = np.zeros(len(jids), dtype=bool)
+    cand[jnum[off > 0.05]] = True
+    sel = np.flatnonzero(cand[jnum])
+    if not len(sel):
+        return none
+    ea, en, jnum = ea[sel], en[sel], jnum[sel]
+    n = len(sel)
+    # the strips near the ends: the points within END_STRIP_REACH_M of the end and the first
+    # beyond it, each strip a ring of its left side out and its right side back
+    at_start = en > ea
+    near_s = np.bincount(cg, weights=cs <= END_STRIP_REACH_M, minlength=cg[-1] + 1).astype(np.int64)
+    near_e = np.bincount(cg, weights=ctot[cg] - cs <= END_STRIP_REACH_M, minlength=cg[-1] + 1).astype(np.int64)
+    size = (last - first + 1)[np.searchsorted(first, ea, "right") - 1]
+    cnt = np.minimum(np.where(at_start, near_s[cg[ea]], near_e[cg[ea]]) + 1, size)
+    lo = np.where(at_start, ea, ea - cnt + 1)
+    tot = int(cnt.sum())
+    grp = np.repeat(np.arange(n), cnt)
+    within = np.arange(tot) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    rows = lo[grp] + within
+    back = lo[grp] + cnt[grp] - 1 - within
+    ring = np.empty((2 * tot, 2))
+    base = np.repeat(2 * (np.cumsum(cnt) - cnt), cnt)
+    ring[base + within] = C[rows] + nrm[rows]
+    ring[base + cnt[grp] + within] = C[back] - nrm[back]
+    strips = shapely.polygons(shapely.linearrings(ring, indices=np.repeat(np.arange(n), 2 * cnt)))
+    bad = ~shapely.is_valid(strips)
+    strips[bad] = shapely.make_valid(strips[bad])
+    strip_j = jnum.copy()
+    # the aprons in front of the ends, across the lane's width
+    u = C[ea] - C[en]
+    u *= (END_GAP_REACH_M / np.maximum(np.hypot(u[:, 0], u[:, 1]), 1e-9))[:, None]
+    L, R = C[ea] + nrm[ea], C[ea] - nrm[ea]
+    apron = shapely.polygons(np.stack([L, R, R + u, L + u], axis=1))
+    edge = shapely.linestrings(np.stack([L, R], axis=1))
+    shapely.prepare(jarr)
+    out_of = ~shapely.covers(jarr[jnum], apron)          # (an apron on its junction has no gap)
+    apron, edge, jnum, ea = apron[out_of], edge[out_of], jnum[out_of], ea[out_of]
+    J = jarr[jnum]
+    # each apron less its junction and, round by round, the strips of its junction's lanes
+    # that reach into it
+    G = shapely.difference(apron, J)
+    ai, si = shapely.STRtree(strips).query(apron, predicate="intersects")
+    keep_pair = jnum[ai] == strip_j[si]
+    ai, si = ai[keep_pair], si[keep_pair]
+    order = np.argsort(ai, kind="stable")
+    ai, si = ai[order], si[order]
+    rnd = np.arange(len(ai)) - np.searchsorted(ai, ai)           # (the pair's rank for its apron)
+    for r in range(int(rnd.max()) + 1 if len(rnd) else 0):
+        on = rnd == r
+        G[ai[on]] = shapely.difference(G[ai[on]], strips[si[on]])
+    # (slivers under 10 cm, as between two strips that nearly meet, are no gap)
+    G = shapely.buffer(shapely.buffer(G, -0.05, join_style="mitre"), 0.05, join_style="mitre")
+    parts, owner = shapely.get_parts(G, return_index=True)
+    if not len(parts):
+        return none
+    ok = (shapely.get_type_id(parts) == 3) & (shapely.area(parts) > 0.01)
+    ok &= (shapely.distance(parts, edge[owner]) < 0.02) & (shapely.distance(parts, J[owner]) < 0.02)
+    parts, owner = parts[ok], owner[ok]
+    out = [(str(jids[jnum[m]]), np.asarray(pg.exterior.coords)[:-1, :2]) for pg, m in zip(parts, owner)]
+    return out, np.unique(rows)
 
 
 def _interior_points(shapes, step: float) -> np.ndarray:
@@ -1429,6 +1536,30 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
                 polys.append(shp); pkind.append("sidewalk"); pid.append(e.id); pel.append("walkingarea")
         elif e.function == "crossing" and e.lanes and len(e.lanes[0].shape) >= 2:
             crossings.append(e)
+    # netconvert's polygon of a junction can cross itself (Monaco: 177 of its 2,272), and
+    # earcut then covered part of it (215 m2 of Monaco's junctions were bare ground; a road
+    # crossing cluster_25193390_6444966511 ran over a hole): such a junction is meshed as the
+    # polygons of its valid form
+    jk = [k for k in range(len(polys)) if pkind[k] == "asphalt"]
+    rings = [_open_ring(np.asarray(polys[k])[:, :2]) for k in jk]
+    has = [i for i, r in enumerate(rings) if r is not None]
+    if has:
+        R_, rg_ = _concat([rings[i] for i in has])
+        jp_ = shapely.polygons(shapely.linearrings(R_, indices=rg_))
+        bad_ = np.flatnonzero(~shapely.is_valid(jp_))
+        if len(bad_):
+            vparts, vof = shapely.get_parts(shapely.make_valid(jp_[bad_]), return_index=True)
+            keep_ = (shapely.get_type_id(vparts) == 3) & (shapely.area(vparts) > 0.05)
+            fixed: dict = {}
+            for g, b in zip(vparts[keep_], vof[keep_]):
+                fixed.setdefault(jk[has[bad_[b]]], []).append(np.asarray(g.exterior.coords)[:, :2])
+            for k in sorted((jk[has[b]] for b in bad_), reverse=True):
+                f = fixed.get(k, [])
+                polys[k:k + 1] = f
+                pkind[k:k + 1] = [pkind[k]] * len(f)
+                pid[k:k + 1] = [pid[k]] * len(f)
+                pel[k:k + 1] = [pel[k]] * len(f)
+
     def polygon_part(kind):
         cand = [k for k in range(len(polys)) if pkind[k] == kind]
         V2, vg, F, fg = _dense_triangulated([polys[k] for k in cand], step)
@@ -1502,6 +1633,48 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
         sup_hw.append(np.zeros(len(v)))
         sup_car.append(np.ones(len(v), dtype=bool))
         sup_deck.append(np.zeros(len(v), dtype=bool))
+    # bare ground where lanes meet a junction at an angle to its border (_lane_end_gaps): filled,
+    # each corner at the height of the surface just outside it (the junction, or a lane's
+    # strip as step 4 makes it), with no point inside
+    hole_part = None
+    holes, near = _lane_end_gaps(edges, lane_edge, C, cg, cs, ctot, nrm, drive, jrings)
+    if holes:
+        HP, hg, HF, hfg = _dense_triangulated([h[1] for h in holes], 1e9)
+        remap = -np.ones(len(lanes), dtype=np.int64)
+        ln_near = np.unique(cg[near])
+        remap[ln_near] = np.arange(len(ln_near))
+        sv, sf, sfg = _strips(C[near], remap[cg[near]], cz[near], hw[near], tilt=tilt[near],
+                              seg_mask=(cg[near][1:] == cg[near][:-1]) & (near[1:] == near[:-1] + 1))
+        strips_near = _part("asphalt", sv, sf, sfg, len(ln_near), [""] * len(ln_near), ["lane"] * len(ln_near),
+                            [()] * len(ln_near), np.zeros((len(ln_near), 2)))
+        # (each corner on the lowest surface 3 cm around it: where a steep lane's strip stands
+        # over its junction, the junction, which the car comes from; at a corner between two
+        # lanes' strips, the lower one)
+        mid = np.column_stack([np.bincount(hg, HP[:, 0]), np.bincount(hg, HP[:, 1])]) / np.bincount(hg)[:, None]
+        ang = np.arange(8) * (np.pi / 4)
+        ring8 = 0.03 * np.column_stack([np.cos(ang), np.sin(ang)])
+        probe = (HP[:, None, :] + ring8[None, :, :]).reshape(-1, 2)
+        around = [strips_near]
+        if junction_part is not None:         # (the junctions with gaps only)
+            with_gap = {h[0] for h in holes}
+            k_ = np.array([k for k, i in enumerate(junction_part.ids) if i in with_gap], dtype=np.int64)
+            if len(k_):
+                fs = np.concatenate([np.arange(junction_part.fstart[k], junction_part.fstart[k + 1]) for k in k_])
+                around.append(types.SimpleNamespace(vertices=junction_part.vertices, faces=junction_part.faces[fs]))
+        pz = _top_surface_z(probe, around, lowest=True).reshape(len(HP), 8)
+        with np.errstate(all="ignore"):
+            hz = np.where(np.isfinite(pz).any(axis=1), np.nanmin(np.where(np.isfinite(pz), pz, np.inf), axis=1), np.nan)
+        miss = ~np.isfinite(hz)
+        if miss.any():
+            hz[miss] = zfun_at(HP[miss], [h[0] for h in holes], hg[miss])
+        n = len(holes)
+        hole_part = _part("asphalt", np.column_stack([HP, hz]), HF, hfg, n, [h[0] for h in holes],
+                          ["junction"] * n, [()] * n, mid)
+        sup_tris.append(HF + sum(map(len, sup)))
+        sup.append(np.column_stack([HP, hz]))
+        sup_hw.append(np.zeros(len(HP)))
+        sup_car.append(np.ones(len(HP), dtype=bool))
+        sup_deck.append(np.zeros(len(HP), dtype=bool))
     geo.support_pts = np.vstack(sup)
     geo.support_hw = np.concatenate(sup_hw)
     geo.support_car = np.concatenate(sup_car)
@@ -1564,6 +1737,8 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
         parts["asphalt"].append(junction_part)
     if gap_part is not None:
         parts["asphalt"].append(gap_part)
+    if hole_part is not None:
+        parts["asphalt"].append(hole_part)
     walk_part = polygon_part("sidewalk")
     if walk_part is not None:
         parts["sidewalk"].append(walk_part)
@@ -1593,6 +1768,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
                  "junctions_meshed": len(junction_part.ids) if junction_part is not None else 0,
                  "walkingareas_meshed": len({i for i, e in zip(pid, pel) if e == "walkingarea"}),  # (cut: pieces)
                  "junction_lanes_meshed": len(gap_lanes),
+                 "lane_end_gaps_filled": len(holes),
                  "crossings_meshed": len(crossings),
                  "junction_ends_moved": ends_moved,
                  "points_conformed": conformed,
