@@ -276,19 +276,14 @@ def test_no_building_stands_on_a_vehicle_lane(helsinki):
     tz = T[:, :, 2].mean(axis=1)
     net = read_net(out / w["net_file"])
     pts = []
-    for e in net.edges.values():
-        if e.function != "normal" or getattr(e, "tunnel", False):
-            continue
-        for ln in e.lanes:
-            if not ln.drivable or len(ln.shape) < 2:
+    for e, ln in _surface_vehicle_lanes(net):
+        line = shapely.LineString(ln.shape[:, :2])
+        for off in (0.0, 0.35 * ln.width, -0.35 * ln.width):
+            g = line if off == 0.0 else line.offset_curve(off)
+            if g.is_empty or g.length < 1.0:
                 continue
-            line = shapely.LineString(ln.shape[:, :2])
-            for off in (0.0, 0.35 * ln.width, -0.35 * ln.width):
-                g = line if off == 0.0 else line.offset_curve(off)
-                if g.is_empty or g.length < 1.0:
-                    continue
-                pts.append(shapely.get_coordinates(
-                    shapely.line_interpolate_point(g, np.arange(0.5, g.length, 2.0))))
+            pts.append(shapely.get_coordinates(
+                shapely.line_interpolate_point(g, np.arange(0.5, g.length, 2.0))))
     P = np.concatenate(pts)
     zr = World(out).ground_z(P[:, 0], P[:, 1])
     ok = np.isfinite(zr)
@@ -600,6 +595,15 @@ def _asphalt_parts(out: Path) -> list:
     return parts
 
 
+def _surface_vehicle_lanes(net):
+    """(edge, lane) of the vehicle lanes (2 points or more) of the roads not in a tunnel."""
+    for e in net.edges.values():
+        if e.function == "normal" and not getattr(e, "tunnel", False):
+            for ln in e.lanes:
+                if ln.drivable and len(ln.shape) >= 2:
+                    yield e, ln
+
+
 def _lane_end_fronts(net, extent, step: float = 0.1):
     """Points (n, 2) of the half discs in front of the vehicle lanes' ends at junctions of
     three roads or more (radius: half the lane's width less 0.15 m, towards the junction;
@@ -623,23 +627,18 @@ def _lane_end_fronts(net, extent, step: float = 0.1):
     g = np.arange(-2.0, 2.0 + 1e-9, step)
     gx, gy = (a.ravel() for a in np.meshgrid(g, g))
     pts, owner = [], []
-    for e in net.edges.values():
-        if e.function != "normal" or getattr(e, "tunnel", False):
-            continue
-        for ln in e.lanes:
-            if not ln.drivable or len(ln.shape) < 2:
+    for e, ln in _surface_vehicle_lanes(net):
+        r = ln.width / 2.0 - 0.15
+        for j, a, b in ((e.from_node, ln.shape[0, :2], ln.shape[1, :2]),
+                        (e.to_node, ln.shape[-1, :2], ln.shape[-2, :2])):
+            if j not in with_shape:
                 continue
-            r = ln.width / 2.0 - 0.15
-            for j, a, b in ((e.from_node, ln.shape[0, :2], ln.shape[1, :2]),
-                            (e.to_node, ln.shape[-1, :2], ln.shape[-2, :2])):
-                if j not in with_shape:
-                    continue
-                u = (a - b) / max(float(np.hypot(*(a - b))), 1e-9)      # out of the lane
-                sel = (gx * gx + gy * gy < r * r) & (gx * u[0] + gy * u[1] > 0.05)
-                Q = a + np.column_stack([gx[sel], gy[sel]])
-                Q = Q[shapely.dwithin(with_shape[j], shapely.points(Q), 1.0)]     # (at the junction)
-                pts.append(Q)
-                owner += [ln.id] * len(Q)
+            u = (a - b) / max(float(np.hypot(*(a - b))), 1e-9)      # out of the lane
+            sel = (gx * gx + gy * gy < r * r) & (gx * u[0] + gy * u[1] > 0.05)
+            Q = a + np.column_stack([gx[sel], gy[sel]])
+            Q = Q[shapely.dwithin(with_shape[j], shapely.points(Q), 1.0)]     # (at the junction)
+            pts.append(Q)
+            owner += [ln.id] * len(Q)
     P = np.vstack(pts)
     inside = np.all((P >= np.array(extent[:2]) + 5.0) & (P <= np.array(extent[2:]) - 5.0), axis=1)
     return P[inside], np.array(owner)[inside]
