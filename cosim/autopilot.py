@@ -107,6 +107,7 @@ SWEEP_MAX_M = 10.0
 SWEEP_DECEL = 3.0
 SWEEP_STEP_M = 1.0
 SWEEP_PREDICT_S = 1.0      # a crossing or oncoming actor moves on along its heading for this long in the roll
+SWEEP_PERSON_M = 0.35      # a person's box grows by this much more each side in the roll (_sweep)
 SWEEP_STOP_M = 0.5         # stop this far (along the sweep) before the first touch
 SWEEP_GATE_M = 0.15        # no roll while the car is this near the lane path ...
 SWEEP_GATE_RADIUS_M = 15.0  # ... and the path ahead turns no tighter than this (_sweep)
@@ -739,6 +740,11 @@ class Autopilot:
                     sp = float(actors.speed[i])
                     moving = sp > 0.5 and abs(math.remainder(b[2] - st.yaw, 2 * math.pi)) > math.pi / 4
                     vel = (sp * math.cos(b[2]), sp * math.sin(b[2])) if moving else None
+                    if actors.kind[i] == "person":
+                        # a person is kept 0.5 m from, not 0.15 m (Portland, seed 1: walking back
+                        # along the car's side as it crept round a right turn, in and out of the
+                        # margin, it let the car on each other step, and the car's corner hit it)
+                        b = b[:3] + (b[3] + 2.0 * SWEEP_PERSON_M, b[4] + 2.0 * SWEEP_PERSON_M)
                     boxes.append((i, b, vel))
         if not boxes:
             return None

@@ -1440,7 +1440,8 @@ class SumoTraffic(Component):
         return self._incoming
 
     def via_lanes(self) -> dict[str, tuple]:
-        """normal lane -> the junction lanes its links go through (one call: cached per network)."""
+        """normal lane -> the junction lanes its links go through, both halves of a link a
+        junction splits (one call: cached per network)."""
         self._read_links()
         return self._vias
 
@@ -1450,13 +1451,25 @@ class SumoTraffic(Component):
             s = self._require()
             inc: dict = {}
             vias: dict = {}
+            after: dict = {}        # a junction lane -> the one after it (a split link's second half)
+
+            def chain(via):
+                out = []
+                while via and via.startswith(":") and len(out) < 5:
+                    out.append(via)
+                    if via not in after:
+                        nl = s.lane.getLinks(via)
+                        after[via] = nl[0][4] if nl else ""
+                    via = after[via]
+                return out
+
             for lane in s.lane.getIDList():
                 if lane.startswith(":"):
                     continue
                 links = s.lane.getLinks(lane)
                 for link in links:
                     inc.setdefault(link[0], []).append(lane)
-                vias[lane] = tuple(sorted({k[4] for k in links if k[4] and k[4].startswith(":")}))
+                vias[lane] = tuple(sorted({v for k in links if k[4] for v in chain(k[4])}))
             self._incoming, self._vias, self._incoming_key = inc, vias, key
 
     # --- traffic lights -----------------------------------------------------------------

@@ -3,8 +3,9 @@
 Positions, widths and connections are exactly SUMO's: each lane is a strip around its SUMO
 centreline, each junction its SUMO polygon, each walking area and crossing its SUMO shape.
 Heights follow the ground: every edge gets one height profile along its middle lane, sampled
-from the natural terrain, and all its lanes take their height from that profile at the same
-fraction of their length, so the road is level across its width; the lanes of an edge "-X"
+from the natural terrain, and all its lanes take their height from that profile (the others
+than the middle lane where they project onto it), so the road is level across its width; the
+lanes of an edge "-X"
 take theirs from the profile of its opposite edge "X" (the same road's other direction) where
 they project onto it, so the two directions meet without a step. Before that, the ends of the
 edges at each node are put on one plane of at most 7 % grade, the planes' heights solved for
@@ -1107,10 +1108,11 @@ def _junction_ties(junctions, ids, node, n, RP, rg, u, r, rz, mx, my, mz, gx, gy
 
 def _share_opposite_profiles(edges, lane_edge, ref_e, RP, rg, rz, C, cg, cz, max_d: float = 8.0) -> int:
     """Heights ``cz`` (in place) of the lane points of every edge "-X" whose opposite edge "X"
-    has a profile: that profile's height where the point projects onto it (points farther
-    than ``max_d`` from it keep their own). Returns how many points changed. (Taking every
-    lane's height by projection, not only these, changed the steep Monaco street's profile
-    so that the speed test went over its 0.3 m/s: left for later.)"""
+    has a profile: that profile's height where the point projects onto it (an edge none of
+    whose points comes within ``max_d`` of it keeps its own). Returns how many points
+    changed. (Taking the middle lanes' heights by projection too, not only the others',
+    changed the steep Monaco street's profile so that the speed test went over its 0.3 m/s:
+    left for later.)"""
     group_of = {int(e): g for g, e in enumerate(ref_e)}         # edge number -> profile group
     number_of = {e.id: i for i, e in enumerate(edges)}
     target = np.full(len(edges), -1, dtype=np.int64)
@@ -1125,7 +1127,13 @@ def _share_opposite_profiles(edges, lane_edge, ref_e, RP, rg, rz, C, cg, cz, max
     if not len(sel) or not len(RP):
         return 0
     best_z, best_d = _onto_profiles(RP, rg, rz, C[sel], tg[sel])
-    use = np.isfinite(best_z) & (best_d <= max_d)
+    # (per edge: all its lanes where the nearest lies within max_d, or none; lane by lane, a
+    # Lauf street's inner lane at 6.4 m took the other direction's profile and the lane beside
+    # it at 9.6 m its own, and they met at steps of up to 0.57 m)
+    ed = lane_edge[cg[sel]]
+    near = np.full(len(edges), np.inf)
+    np.minimum.at(near, ed, best_d)
+    use = np.isfinite(best_z) & (near[ed] <= max_d)
     cz[sel[use]] = best_z[use]
     return int(use.sum())
 
@@ -1133,7 +1141,8 @@ def _share_opposite_profiles(edges, lane_edge, ref_e, RP, rg, rz, C, cg, cz, max
 def _onto_profiles(RP, rg, rz, pts, groups):
     """Height of profile `groups[i]` (of the profiles RP, rg, rz) where point `pts[i]`
     projects onto it, and the distance to it (NaN, inf where none of the profile's points is
-    among the 16 nearest)."""
+    among the 16 nearest). (Given the profiles' fractions of their length as `rz`, the
+    fraction there.)"""
     n = len(RP)
     if not len(pts) or not n:
         return np.full(len(pts), np.nan), np.full(len(pts), np.inf)
@@ -1386,8 +1395,36 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     LP, lg = _concat([l.shape for l in lanes])
     C, cg = resample_many(LP, lg, step)
     cs, ctot = _arclen(C, cg)
-    key = 2.0 * lane_edge[cg] + cs / np.maximum(ctot[cg], 1e-9)
+    frac = cs / np.maximum(ctot[cg], 1e-9)
+    # the other lanes of an edge take its profile's height where each point projects onto it,
+    # not at the same fraction of their own length: on a bend the inner lane is shorter, and at
+    # an angled junction border the lanes' ends are staggered (Monaco: seams between two lanes
+    # of one edge stepping over 0.1 m 3.85 -> 0.71 %); sidewalks, and a point that finds no
+    # profile, between where their ends project
+    ref_shape = {int(ei): id(shp) for ei, shp in refs}
+    other = np.flatnonzero([id(ln.shape) != ref_shape.get(int(e), 0) for ln, e in zip(lanes, lane_edge)])
+    if len(other):
+        lfirst = np.r_[0, np.nonzero(cg[1:] != cg[:-1])[0] + 1]
+        llast = np.r_[lfirst[1:] - 1, len(cg) - 1]
+        grp_of = np.full(len(edges), -1, dtype=np.int64)
+        grp_of[ref_e] = np.arange(len(ref_e))
+        og = grp_of[lane_edge[other]]
+        other, og = other[og >= 0], og[og >= 0]
+        at, d = _onto_profiles(RP, rg, rs / np.maximum(rtot[rg], 1e-9),
+                               np.vstack([C[lfirst[other]], C[llast[other]]]), np.concatenate([og, og]))
+        f0, f1 = at[:len(other)], at[len(other):]
+        ok = np.isfinite(f0) & np.isfinite(f1) & (d[:len(other)] <= 8.0) & (d[len(other):] <= 8.0)
+        lf0, lf1 = np.zeros(len(lanes)), np.ones(len(lanes))
+        lf0[other[ok]], lf1[other[ok]] = f0[ok], f1[ok]
+        frac = lf0[cg] + (lf1 - lf0)[cg] * frac
+    key = 2.0 * lane_edge[cg] + frac
     cz = np.interp(key, rkey, rz)
+    car_other = other[[lanes[k].drivable for k in other]] if len(other) else other
+    if len(car_other):        # (vehicle lanes: sidewalks keep the mapping by their ends)
+        po = np.flatnonzero(np.isin(cg, car_other))
+        zo, do = _onto_profiles(RP, rg, rz, C[po], grp_of[lane_edge[cg[po]]])
+        okp = np.isfinite(zo) & (do <= 8.0)
+        cz[po[okp]] = zo[okp]
     # the two directions of one road ("X" and "-X", side by side) share the profile of "X",
     # where each lane point of "-X" projects onto it: each levelled across its own width on a
     # hillside, they met at a step of the cross slope times a lane width (0.43 m on a Monaco
