@@ -1561,26 +1561,34 @@ def test_a_route_with_a_turn_the_car_cannot_make_is_driven_only_up_to_where_it_c
         sim.teardown()
 
 
+def _rolling_car(sim, speed: float):
+    """The driver, its path, and the car as the sweep sees it 20 m on along the path, off the
+    path (so that the sweep rolls): (driver, path, s, x, y, heading, car)."""
+    import types
+
+    ap, path = sim.driver, sim.path
+    st = sim.vehicle.state()
+    s_e = s_of(sim, st.x, st.y)[0] + 20.0
+    ex, ey = path.point_at(s_e)
+    h = path.heading_at(s_e)
+    car = types.SimpleNamespace(x=float(ex), y=float(ey), yaw=h, speed=speed, steer=0.0)
+    ap._k, _, ap._lat = path.project(ex, ey, path.index_at(s_e))
+    ap._lat = 1.0
+    return ap, path, s_e, ex, ey, h, car
+
+
 def test_the_sweep_lets_a_crossing_car_move_on_while_the_car_rolls(helsinki):
     """A crossing or oncoming actor moves on along its heading in the car's roll, for up to
     SWEEP_PREDICT_S (Monaco, seed 28: a car angled towards the car's side at 6.8 m/s was clear
     of the roll's margin, and touched the car's rear corner 0.2 s later). A car 4 m ahead and
     4 m to the left, crossing to the right at 5 m/s: in the roll's way; standing there, or
     driving the car's way, not."""
-    import types
 
     from cosim.traffic import ActorsSnapshot
 
     sim = start_sim(helsinki, start=HEL_MID)
     try:
-        ap, path = sim.driver, sim.path
-        st = sim.vehicle.state()
-        s_e = s_of(sim, st.x, st.y)[0] + 20.0
-        ex, ey = path.point_at(s_e)
-        h = path.heading_at(s_e)
-        car = types.SimpleNamespace(x=float(ex), y=float(ey), yaw=h, speed=2.0, steer=0.0)
-        ap._k, _, ap._lat = path.project(ex, ey, path.index_at(s_e))
-        ap._lat = 1.0                                    # (off the path: the sweep rolls)
+        ap, path, s_e, ex, ey, h, car = _rolling_car(sim, 2.0)
         cx = ex + 4.0 * math.cos(h) - 4.0 * math.sin(h)
         cy = ey + 4.0 * math.sin(h) + 4.0 * math.cos(h)
 
@@ -1604,20 +1612,12 @@ def test_the_sweep_keeps_a_person_half_a_metre_clear(helsinki):
     the 0.15 m margin step by step, the car went on every other step, and its corner hit the
     person). A person standing 0.3 m beside the car's path ahead stops the roll; a car there,
     or the person 0.7 m off, does not."""
-    import types
 
     from cosim.traffic import ActorsSnapshot
 
     sim = start_sim(helsinki, start=HEL_MID)
     try:
-        ap, path = sim.driver, sim.path
-        st = sim.vehicle.state()
-        s_e = s_of(sim, st.x, st.y)[0] + 20.0
-        ex, ey = path.point_at(s_e)
-        h = path.heading_at(s_e)
-        car = types.SimpleNamespace(x=float(ex), y=float(ey), yaw=h, speed=1.0, steer=0.0)
-        ap._k, _, ap._lat = path.project(ex, ey, path.index_at(s_e))
-        ap._lat = 1.0                                    # (off the path: the sweep rolls)
+        ap, path, s_e, ex, ey, h, car = _rolling_car(sim, 1.0)
 
         def snap(kind, gap, w):
             side = -(0.5 * ap.width + gap + 0.5 * w)     # to the right, 3.5 m ahead
