@@ -54,7 +54,7 @@ import numpy as np
 from netgen.errors import SimulationError
 
 from .component import Component
-from .driving import _onto_segments
+from .driving import _onto_segments, _via_lanes
 
 log = logging.getLogger(__name__)
 
@@ -1451,25 +1451,13 @@ class SumoTraffic(Component):
             s = self._require()
             inc: dict = {}
             vias: dict = {}
-            after: dict = {}        # a junction lane -> the one after it (a split link's second half)
-
-            def chain(via):
-                out = []
-                while via and via.startswith(":") and len(out) < 5:
-                    out.append(via)
-                    if via not in after:
-                        nl = s.lane.getLinks(via)
-                        after[via] = nl[0][4] if nl else ""
-                    via = after[via]
-                return out
-
             for lane in s.lane.getIDList():
                 if lane.startswith(":"):
                     continue
                 links = s.lane.getLinks(lane)
                 for link in links:
                     inc.setdefault(link[0], []).append(lane)
-                vias[lane] = tuple(sorted({v for k in links if k[4] for v in chain(k[4])}))
+                vias[lane] = tuple(sorted({v for k in links if k[4] for v in _via_lanes(s, k[4])}))
             self._incoming, self._vias, self._incoming_key = inc, vias, key
 
     # --- traffic lights -----------------------------------------------------------------
