@@ -3,11 +3,11 @@
 Positions, widths and connections are exactly SUMO's: each lane is a strip around its SUMO
 centreline, each junction its SUMO polygon, each walking area and crossing its SUMO shape.
 Heights follow the ground: every edge gets one height profile along its middle lane, sampled
-from the natural terrain, and all its lanes take their height from that profile (the others
-than the middle lane where they project onto it), so the road is level across its width; the
-lanes of an edge "-X"
-take theirs from the profile of its opposite edge "X" (the same road's other direction) where
-they project onto it, so the two directions meet without a step. Before that, the ends of the
+from the natural terrain, and all its lanes take their height from that profile (its other
+vehicle lanes where they project onto it, its sidewalks between where their ends project), so
+the road is level across its width; the lanes of an edge "-X" take theirs from the profile
+of its opposite edge "X" (the same road's other direction) where they project onto it, so the
+two directions meet without a step. Before that, the ends of the
 edges at each node are put on one plane of at most 7 % grade, the planes' heights solved for
 all nodes at once, each edge taking up its ends' moves linearly (:func:`_junction_planes`).
 Tunnels (OSM ``tunnel=*``, an edge parameter) are not meshed, nor the junctions where only
