@@ -107,7 +107,8 @@ SWEEP_MAX_M = 10.0
 SWEEP_DECEL = 3.0
 SWEEP_STEP_M = 1.0
 SWEEP_PREDICT_S = 1.0      # a crossing or oncoming actor moves on along its heading for this long in the roll
-SWEEP_PERSON_M = 0.35      # a person's box grows by this much more each side in the roll (_sweep)
+SWEEP_PERSON_M = 0.35      # a walking person's box grows by this much more each side in the roll (_sweep)
+SWEEP_STILL_MPS = 0.2      # ... one slower than this (standing) does not
 SWEEP_STOP_M = 0.5         # stop this far (along the sweep) before the first touch
 SWEEP_GATE_M = 0.15        # no roll while the car is this near the lane path ...
 SWEEP_GATE_RADIUS_M = 15.0  # ... and the path ahead turns no tighter than this (_sweep)
@@ -395,7 +396,8 @@ class Autopilot:
         if hold > 0.0 or progress < LC_COMMIT:
             if hold > 0.0 and s_here > s_dead + 3.0 and v > 1.0:
                 blocker = None        # run past where it had to be made (no stop in time): go
-            elif hold > 0.0 or s_here + self.front + v * v / (2.0 * 1.5 * COMFORT_DECEL) < s_dead:
+            elif hold > 0.0 or v < LC_SLOW_MPS or \
+                    s_here + self.front + v * v / (2.0 * 1.5 * COMFORT_DECEL) < s_dead:
                 blocker = self._lc_blocker(c, st, path, s_here, v, actors)
         if blocker is not None:
             if hold == 0.0:
@@ -421,8 +423,8 @@ class Autopilot:
         "behind" / "beside" / "ahead"), or None. Room: behind the car a follower's safe gap
         (LC_REACT_S at its speed, plus what it must brake at LC_DECEL to come down to the car's
         speed), ahead the car's own, at least LC_MIN_GAP_M. A vehicle slower than LC_SLOW_MPS
-        (a queue) needs LC_SLOW_GAP_M behind the car and none beside or ahead: the car merges
-        behind it as before (Lauf, seed 18: held back beside a queue, the car stood inside a
+        (a queue) needs LC_SLOW_GAP_M behind the car and none ahead, nor beside unless the car
+        is as slow: the car merges behind it as before (Lauf, seed 18: held back beside a queue, the car stood inside a
         junction and then for good before the edge's end; SUMO's queues leave no car-sized gap)."""
         if actors is None or not len(actors):
             return None
@@ -462,8 +464,12 @@ class Autopilot:
                 need = LC_SLOW_GAP_M if slow else \
                     max(LC_MIN_GAP_M, vf * LC_REACT_S + (vf * vf - v * v) / (2.0 * LC_DECEL))
                 where = "behind"
-            elif slow:
+            elif slow and (v >= LC_SLOW_MPS or s[j] - half > ego_front):
                 continue
+            # (a queue beside a car in a queue itself: it cannot drop behind, so it waits for
+            # the vehicle to move on. Helsinki, seed 37: the car stood beside a standing car
+            # past the edge's deadline, its hold ran out, and on moving off it steered into
+            # the lane while the car was still beside it; SUMO counted a collision)
             elif s[j] - half > ego_front:
                 gap = (s[j] - half) - ego_front
                 need = max(LC_MIN_GAP_M, v * 0.5 + (v * v - vf * vf) / (2.0 * LC_DECEL))
@@ -740,10 +746,13 @@ class Autopilot:
                     sp = float(actors.speed[i])
                     moving = sp > 0.5 and abs(math.remainder(b[2] - st.yaw, 2 * math.pi)) > math.pi / 4
                     vel = (sp * math.cos(b[2]), sp * math.sin(b[2])) if moving else None
-                    if actors.kind[i] == "person":
-                        # a person is kept 0.5 m from, not 0.15 m (Portland, seed 1: walking back
-                        # along the car's side as it crept round a right turn, in and out of the
-                        # margin, it let the car on each other step, and the car's corner hit it)
+                    if actors.kind[i] == "person" and sp >= SWEEP_STILL_MPS:
+                        # a walking person is kept 0.5 m from, not 0.15 m (Portland, seed 1:
+                        # walking back along the car's side as it crept round a right turn, in
+                        # and out of the margin, it let the car on each other step, and the car's
+                        # corner hit it). One standing is not: at a crossing SUMO's persons wait
+                        # for the car, and two standing on a walking area's corner 0.55 m beside
+                        # the car's turn held it for good (Helsinki, dense seed 20)
                         b = b[:3] + (b[3] + 2.0 * SWEEP_PERSON_M, b[4] + 2.0 * SWEEP_PERSON_M)
                     boxes.append((i, b, vel))
         if not boxes:

@@ -1362,7 +1362,8 @@ class SumoTraffic(Component):
     def replan_from(self, lanes, x: float, y: float, yaw: float, route=(), **kw) -> dict:
         """``plan_route`` from the car at (x, y, yaw) on this network (after a swap): from its
         position on ``lanes[0]`` (the lane it is on in the old path) if this network has that
-        lane; else from the lane under it if that runs its way; else from the start of the
+        lane, or on the lane of the same edge under the car if that is nearer by half a metre
+        (mid-way through a lane change); else from the lane under it if that runs its way; else from the start of the
         next of ``lanes`` this network has; else from the nearest lane. Without a goal, the rest
         of the old ``route`` (from the start lane's edge on) is kept where this network has all
         of it: the car keeps its lanes (a new route may want another lane at once, a lane
@@ -1372,6 +1373,20 @@ class SumoTraffic(Component):
         start = None
         if lanes and lanes[0] in known:
             start = (lanes[0], self.lane_pos(lanes[0], x, y))
+            # along a lane change the old path names the lane it changes into, and the car may
+            # still be on the one it came from (Helsinki, seed 37: a swap on a 16 m edge; the new
+            # path began on the next lane, 3 m beside the car, which drove over to it through a
+            # standing queue): the lane under the car, if it is one of the same edge
+            try:
+                cand, cpos, _, _, lyaw, dist = self.snap_lane(x, y)
+            except SimulationError:
+                cand = None
+            if cand is not None and cand != lanes[0] and not lanes[0].startswith(":") \
+                    and cand.rsplit("_", 1)[0] == lanes[0].rsplit("_", 1)[0] \
+                    and abs(math.remainder(lyaw - yaw, math.tau)) < math.pi / 4:
+                own = _polyline_distance(np.asarray(self._require().lane.getShape(lanes[0]), dtype=float), x, y)
+                if dist < own - 0.5:
+                    start = (cand, cpos)
         else:
             try:
                 cand, cpos, _, _, lyaw, dist = self.snap_lane(x, y)

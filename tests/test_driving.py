@@ -1331,6 +1331,46 @@ def _lc_start_goal(sim):
     return at(HEL_LC_EDGE + "_1", 5.0), at(HEL_LC_NEXT + "_0", 30.0)
 
 
+def test_a_replan_in_a_lane_change_starts_on_the_lane_under_the_car(helsinki):
+    """Along a lane change the path names the lane it changes into; a re-plan after a network
+    swap started the new path on that lane while the car was still on the lane it came from,
+    a lane's width beside it (Helsinki, seed 37: the car drove 3 m sideways through a standing
+    queue). ``replan_from`` starts on the lane of the same edge under the car when that is
+    nearer, so the new path begins under the car; on the target lane itself it stays there."""
+    probe = start_sim(helsinki, start=HEL_MID)
+    try:
+        start, goal = _lc_start_goal(probe)
+    finally:
+        probe.teardown()
+    sim = start_sim(helsinki, start=start, goal=goal, speed_mps=8.0)
+    try:
+        tr, path = sim.traffic, sim.path
+        s = tr.sumo
+        c = [c for c in path.changes if c.edge == HEL_LC_EDGE][0]
+        kw = sim.replan_args()[1]
+
+        def on(lane, pos):
+            P = np.asarray(s.lane.getShape(lane), dtype=float)[:, :2]
+            d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(P, axis=0).T))])
+            x, y = float(np.interp(pos, d, P[:, 0])), float(np.interp(pos, d, P[:, 1]))
+            k = min(int(np.searchsorted(d, pos)), len(P) - 1)
+            yaw = math.atan2(*(P[k] - P[k - 1])[::-1])
+            return x, y, yaw
+
+        pos = 0.5 * (s.lane.getLength(c.from_lane))
+        lanes = [ln for ln, _ in path.lane_of[path.index_at(c.s0):]]
+        lanes = list(dict.fromkeys(lanes))
+        assert lanes[0] == c.to_lane            # the path's name for the lane along the change
+        for lane in (c.from_lane, c.to_lane):
+            x, y, yaw = on(lane, pos)
+            new = tr.replan_from(lanes, x, y, yaw, **kw)["path"]
+            assert float(np.hypot(new.xy[0, 0] - x, new.xy[0, 1] - y)) < 0.3
+            moves = [(ch.from_lane, ch.to_lane) for ch in new.changes if ch.edge == HEL_LC_EDGE]
+            assert moves == ([(c.from_lane, c.to_lane)] if lane == c.from_lane else [])
+    finally:
+        sim.teardown()
+
+
 def test_a_lane_change_holds_back_for_a_car_in_the_lane_changed_into(helsinki):
     """Gap acceptance (Autopilot._lane_change): the path moves over to the next lane along an
     edge; a vehicle in that lane without room for the car holds it in its own lane (the held
@@ -1413,10 +1453,15 @@ def test_a_lane_change_holds_back_for_a_car_in_the_lane_changed_into(helsinki):
         assert ap._lc_blocker(c, car, path, s_car, 8.0, snap((1.0, tgt_off, 8.0)))[2] == "beside"
         assert ap._lc_blocker(c, car, path, s_car, 8.0, snap((-12.0, 0.0, 12.0))) is None      # own lane
         assert ap._lc_blocker(c, car, path, s_car, 8.0, snap((6.0, tgt_off, 4.0)))[2] == "ahead"
-        # a queue (slower than LC_SLOW_MPS): beside or ahead no hold (the car merges behind it),
+        # a queue (slower than LC_SLOW_MPS): ahead no hold (the car merges behind it), nor beside
+        # a car at speed (it drops behind); beside a car in the queue itself it holds (the car
+        # cannot drop behind: Helsinki, seed 37, it steered into a standing car beside it);
         # behind it needs 1 m
         still = types.SimpleNamespace(x=float(x0), y=float(y0), yaw=h, speed=0.0)
-        assert ap._lc_blocker(c, still, path, s_car, 0.0, snap((0.0, tgt_off, 0.0), (6.0, tgt_off, 1.0))) is None
+        assert ap._lc_blocker(c, still, path, s_car, 0.0, snap((6.0, tgt_off, 1.0))) is None
+        assert ap._lc_blocker(c, car, path, s_car, 8.0, snap((0.0, tgt_off, 0.0))) is None
+        blk = ap._lc_blocker(c, still, path, s_car, 0.0, snap((6.0, tgt_off, 1.0), (0.0, tgt_off, 0.0)))
+        assert blk is not None and blk[0] == "v1" and blk[2] == "beside"
         assert ap._lc_blocker(c, still, path, s_car, 0.0, snap((-6.0, tgt_off, 1.0))) is None    # 1.5 m
         assert ap._lc_blocker(c, still, path, s_car, 0.0, snap((-4.9, tgt_off, 1.0)))[2] == "behind"   # 0.4 m
 
@@ -1610,8 +1655,10 @@ def test_the_sweep_keeps_a_person_half_a_metre_clear(helsinki):
     """A person is kept 0.5 m clear in the car's roll, a vehicle 0.15 m (Portland, seed 1: a
     person walking back along the car's side as it crept round a right turn went in and out of
     the 0.15 m margin step by step, the car went on every other step, and its corner hit the
-    person). A person standing 0.3 m beside the car's path ahead stops the roll; a car there,
-    or the person 0.7 m off, does not."""
+    person). A person walking 0.3 m beside the car's path ahead stops the roll; a car there,
+    the person 0.7 m off, or standing there, does not (Helsinki, dense seed 20: two persons
+    standing on a walking area's corner, waiting for the car to clear their crossing, 0.55 m
+    beside its turn, held it for good)."""
 
     from cosim.traffic import ActorsSnapshot
 
@@ -1619,17 +1666,19 @@ def test_the_sweep_keeps_a_person_half_a_metre_clear(helsinki):
     try:
         ap, path, s_e, ex, ey, h, car = _rolling_car(sim, 1.0)
 
-        def snap(kind, gap, w):
-            side = -(0.5 * ap.width + gap + 0.5 * w)     # to the right, 3.5 m ahead
+        def snap(kind, gap, w, speed=1.0):
+            side = -(0.5 * ap.width + gap + 0.5 * w)     # to the right, 3.5 m ahead, walking the car's way
             one = lambda v: np.array([v])                 # noqa: E731
             return ActorsSnapshot(0.0, np.array(["a1"], dtype=object), np.array([kind], dtype=object),
                                   one(ex + 3.5 * math.cos(h) - side * math.sin(h)),
                                   one(ey + 3.5 * math.sin(h) + side * math.cos(h)), one(h), one(0.5), one(w),
-                                  one(1.7), one(0.0), one(0.0), np.array(["x_0"], dtype=object))
+                                  one(1.7), one(speed), one(0.0), np.array(["x_0"], dtype=object))
 
         person = ap._sweep(car, path, s_e, snap("person", 0.3, 0.5), ap.pp)
         assert person is not None and person[1] == "a1" and person[2] == "person"
         assert ap._sweep(car, path, s_e, snap("person", 0.7, 0.5), ap.pp) is None
+        assert ap._sweep(car, path, s_e, snap("person", 0.3, 0.5, speed=0.0), ap.pp) is None
+        assert ap._sweep(car, path, s_e, snap("person", 0.1, 0.5, speed=0.0), ap.pp) is not None
         assert ap._sweep(car, path, s_e, snap("passenger", 0.3, 0.5), ap.pp) is None
     finally:
         sim.teardown()
