@@ -51,13 +51,14 @@ def _build_window(cfg_dict: dict, window: tuple, out: str, traffic, seed: int, d
     """Worker process: build a window and its demand; send (out, route files) or an error."""
     try:
         from cosim.demand import generate_demand
-        from netgen.build import build_world
+        from netgen.build import PLANES_FILE, build_world
         from netgen.config import WorldConfig
 
         cfg = WorldConfig.from_dict(cfg_dict)
         cfg.window = tuple(window)
         cfg.out = out
-        w = build_world(cfg)
+        # (the road heights of the world's register: <world>/windows/<i>_<j> -> <world>)
+        w = build_world(cfg, heights=Path(out).parent.parent / PLANES_FILE)
         net = Path(w["out"]) / w["net_file"]
         d = generate_demand(net, Path(w["out"]) / "traffic", density=traffic, seed=seed, duration=duration)
         from .world import write_bridge_lanes

@@ -205,8 +205,13 @@ def load_world_json(out: Path) -> dict | None:
     return w
 
 
-def build_world(cfg: WorldConfig, progress=_noop, force: bool = False) -> dict:
-    """Build (or reuse) the world described by `cfg`; returns the world.json dict."""
+def build_world(cfg: WorldConfig, progress=_noop, force: bool = False, heights=None) -> dict:
+    """Build (or reuse) the world described by `cfg`; returns the world.json dict.
+
+    ``heights``: a road heights register (``road_planes.npz``, see :func:`read_planes`) to
+    build consistently with: its junction planes are kept, and this build's own are added to
+    it for the nodes it has not got (a streamed window and the world before it then give the
+    same street the same height; without, up to 0.45 m apart on Portland)."""
     from . import sumo_net
 
     cfg.validate()
@@ -255,10 +260,12 @@ def build_world(cfg: WorldConfig, progress=_noop, force: bool = False) -> dict:
         if not nc.started:
             _start(nc, tmp, out, progress)
         world = _build_into(tmp, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, source,
-                            elevation, elev_info, key, name, nc, T, progress)
+                            elevation, elev_info, key, name, nc, T, progress, read_planes(heights))
         world["timings_s"]["total"] = round(time.perf_counter() - t_start, 3)
         write_text(tmp / "world.json", json.dumps(world, indent=1))
         _swap_into_place(tmp, out)
+        if heights is not None:
+            merge_planes(heights, read_planes(out / PLANES_FILE))
     except BaseException:
         nc.kill()
         shutil.rmtree(tmp, ignore_errors=True)
@@ -269,6 +276,45 @@ def build_world(cfg: WorldConfig, progress=_noop, force: bool = False) -> dict:
 
 
 NET_FILE = "net/world.net.xml"
+PLANES_FILE = "road_planes.npz"
+#: a build registers the junction planes of the nodes at least this far inside its extent
+#: (nearer its edge the network is cut, and the planes less like a wider build's)
+PLANES_MARGIN_M = 300.0
+
+
+def read_planes(path) -> dict | None:
+    """A road heights register: node id -> junction plane (x0, y0, z0, gx, gy), the plane
+    z0 + gx (x - x0) + gy (y - y0) that the ends of the node's roads lie on. ``road_planes.npz``
+    holds ``ids`` (strings) and ``planes`` (n, 5). None if there is none, or it cannot be read."""
+    if path is None or not Path(path).is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as d:
+            ids, planes = d["ids"], np.asarray(d["planes"], dtype=float)
+    except (OSError, ValueError, KeyError):
+        return None
+    if planes.ndim != 2 or planes.shape[1] != 5 or len(ids) != len(planes):
+        return None
+    return {str(j): tuple(p) for j, p in zip(ids.tolist(), planes.tolist())}
+
+
+def write_planes(path, planes: dict) -> None:
+    ids = sorted(planes)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, ids=np.array(ids, dtype=str),
+                     planes=np.array([planes[j] for j in ids], dtype=float).reshape(-1, 5))
+
+
+def merge_planes(path, new: dict | None) -> None:
+    """Add the planes of ``new`` whose nodes ``path``'s register has not got (the first build
+    to register a node fixes it)."""
+    if not new:
+        return
+    have = read_planes(path) or {}
+    add = {j: p for j, p in new.items() if j not in have}
+    if add:
+        write_planes(path, {**have, **add})
 
 
 def _start(nc, tmp: Path, out: Path, progress) -> None:
@@ -294,7 +340,7 @@ def _swap_into_place(tmp: Path, out: Path) -> None:
 
 # ---------------------------------------------------------------------------------------
 def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, source,
-                elevation, elev_info, key, name, nc, T: Timer, progress) -> dict:
+                elevation, elev_info, key, name, nc, T: Timer, progress, pinned=None) -> dict:
     q = QUALITY[cfg.quality]
     spacing = cfg.spacing
     bounds = [frame.chunk_bounds(i, j) for i, j in chunks]
@@ -361,7 +407,11 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
             with T.stage("roads"):  # the levelling support: levelled here or in cosim-layers
                 roads = build_roads(net, natural.sample, q["road_step_m"],
                                     on_support=lambda pts, hw, car, tris, hold: streams.level(
-                                        pts, hw, car, tris, hold, T, buildings.lift))
+                                        pts, hw, car, tris, hold, T, buildings.lift), pinned=pinned)
+            m_ = PLANES_MARGIN_M
+            write_planes(tmp / PLANES_FILE, {j: p for j, p in roads.planes.items()
+                                             if extent[0] + m_ <= p[0] <= extent[2] - m_
+                                             and extent[1] + m_ <= p[1] <= extent[3] - m_})
             T.t["roads"] = round(T.t["roads"] - T.t.get("terrain_level", 0.0), 3)
             with T.stage("road_tiles_plan"):
                 road_tiles = _RoadTiles(chunks, bounds, roads, TILE_M)
@@ -418,6 +468,10 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         "projection": {"proj": frame.proj_string, "net_offset": list(frame.net_offset),
                        "note": "x, y = proj(lon, lat) + net_offset; SUMO's network uses the same (see net_file <location>)"},
         "net_file": net_rel,
+        "road_planes": {"file": PLANES_FILE, "pinned": roads.stats.get("planes_pinned", 0),
+                        "note": "junction planes (ids; planes: x0, y0, z0, gx, gy) of the nodes "
+                                f"{PLANES_MARGIN_M:.0f} m or more inside the extent; in the world a "
+                                "streamed window starts from, also those its windows added"},
         "tunnels": sorted(e.id for e in net.edges.values() if e.function == "normal" and e.tunnel),
         "terrain": {"format": "npy-float32-grid", "spacing_m": spacing,
                     "layout": "chunks[].files.terrain: z[row, col] at x = bounds_m[0] + col*spacing_m, y = bounds_m[1] + row*spacing_m; row 0 = south; both edges included (shared with neighbours)",

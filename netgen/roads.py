@@ -45,6 +45,7 @@ only, 1.5 cm above the surface). Each piece keeps its SUMO id and the OSM way id
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import cached_property
 from operator import attrgetter
@@ -68,6 +69,8 @@ JUNCTION_SUPPORT_STEP = 4.0
 JUNCTION_MAX_GRADE = 0.07
 #: an edge's mean grade (end to end) beyond this is a DEM artefact that the planes take out
 EDGE_MAX_GRADE = 0.25
+#: a pinned plane (_junction_planes) is taken by a node whose edge ends' mean is this near it
+PIN_MATCH_M = 0.5
 #: passes of a [1 2 1] / 4 filter over each edge's height profile (points about 2.5 m apart;
 #: 8 passes: a vertical curve of about 10 m where the ground's grade changes)
 PROFILE_SMOOTH_PASSES = 8
@@ -127,6 +130,7 @@ class RoadGeometry:
     support_car: np.ndarray = None                 # (n,) True where cars drive (lanes, junctions)
     support_tris: np.ndarray = None                # (m, 3) the drivable surface's triangles over support_pts
     support_hold: np.ndarray = None                # (n,) False where a bridge's deck is above the ground
+    planes: dict = field(default_factory=dict)     # node -> (x0, y0, z0, gx, gy): its junction plane
     stats: dict = field(default_factory=dict)
     net: object = None
 
@@ -886,7 +890,7 @@ def _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, clearance) -> None:
 def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, junctions=None,
                      max_grade: float = JUNCTION_MAX_GRADE, grade_weight: float = 40.0, tie_weight: float = 3.0,
                      ridge: float = 0.5, planes_out: dict | None = None,
-                     max_edge_grade: float = EDGE_MAX_GRADE, deck=None) -> int:
+                     max_edge_grade: float = EDGE_MAX_GRADE, deck=None, pinned: dict | None = None) -> int:
     """Make the ends of the edges that meet at a node lie on one plane (``rz`` in place).
 
     Each edge's profile is sampled from the ground, so the roads at a junction on a hillside
@@ -910,6 +914,13 @@ def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, juncti
     the ends onto planes set by their own node alone made the short edges between two
     junctions take the difference, Monaco's lanes steeper than 70 % grew 3.4 times; without
     the ties, a street beside a parallel one ended 1 m below it, and the car caught its edge.)
+    ``pinned``: node -> plane (x0, y0, z0, gx, gy), as ``planes_out`` gives them: those nodes
+    keep that plane (where their edge ends' mean lies within PIN_MATCH_M of x0, y0: the same
+    node) and the others are solved around them. The solve couples every node to every other
+    through the grades and ties, so two builds of overlapping areas (a streamed window and the
+    world it replaces) gave the same street heights up to 0.45 m apart (Portland: the car's
+    tile, replaced under it at a swap, trapped it); a window pins the planes the builds before
+    it gave (:mod:`netgen.build`, ``road_planes.npz``).
     Returns how many ends moved by more than 1 cm."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import spsolve
@@ -947,6 +958,14 @@ def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, juncti
     g = np.hypot(gx, gy)
     scale = np.where(g > max_grade, max_grade / np.maximum(g, 1e-12), 1.0)
     gx, gy = gx * scale, gy * scale
+    fixed = np.full(m, np.nan)          # c of a pinned plane
+    if pinned:
+        for j, k in ids.items():
+            p = pinned.get(j)
+            if p is None or np.isfinite(fixed[k]) or math.hypot(p[0] - mx[k], p[1] - my[k]) > PIN_MATCH_M:
+                continue
+            gx[k], gy[k] = p[3], p[4]
+            fixed[k] = p[2] + p[3] * (mx[k] - p[0]) + p[4] * (my[k] - p[1]) - mz[k]
     # r: each end's height above its node's plane through the mean; the unknown c shifts a
     # node's plane, and an end moves by c[node] - r
     r = dz - gx[node] * dx - gy[node] * dy
@@ -997,7 +1016,17 @@ def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, juncti
         nr = _junction_ties(junctions, ids, node, n, RP, rg, u, r, rz, mx, my, mz, gx, gy, tie_weight,
                             nr, rows, cols, vals, rhs, deck=deck)
     A = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(nr, m))
-    c = spsolve((A.T @ A).tocsc(), A.T @ np.concatenate(rhs))
+    b = np.concatenate(rhs)
+    fx = np.isfinite(fixed)
+    if fx.any():            # the pinned planes' columns go to the right-hand side
+        c = fixed.copy()
+        free = np.flatnonzero(~fx)
+        if len(free):
+            Af = A[:, free]
+            bf = b - A[:, np.flatnonzero(fx)] @ fixed[fx]
+            c[free] = np.atleast_1d(spsolve((Af.T @ Af).tocsc(), Af.T @ bf))
+    else:
+        c = spsolve((A.T @ A).tocsc(), A.T @ b)
     dz_end = c[node] - r
     rz += (1.0 - u) * dz_end[:n][rg] + u * dz_end[n:][rg]
     if planes_out is not None:
@@ -1343,13 +1372,15 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     return int(moved.sum())
 
 
-def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry:
+def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | None = None) -> RoadGeometry:
     """Meshes for every SUMO edge, junction, walking area and crossing of `net`.
 
     `ground(x, y)` is the natural terrain height (vectorised). `on_support(pts, hw, car, tris,
     hold)`, if given, is called with the levelling support (:attr:`RoadGeometry.support_pts`,
     ``support_hw``, ``support_car``, ``support_tris``, ``support_hold``) as soon as it is complete, before the rest of the meshing (lane strips,
-    markings, walking areas, crossings), so that the terrain can be levelled meanwhile."""
+    markings, walking areas, crossings), so that the terrain can be levelled meanwhile.
+    ``pinned``: planes of nodes to keep (:func:`_junction_planes`); the planes of all nodes
+    are in :attr:`RoadGeometry.planes`."""
     geo = RoadGeometry(net=net)
     edges, lanes, lane_edge, refs = _road_lanes(net)
 
@@ -1392,7 +1423,11 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
     conform()
     planes: dict = {}
     ends_moved = _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=edge_hw[ref_e], junctions=jrings,
-                                  planes_out=planes, deck=deck)
+                                  planes_out=planes, deck=deck, pinned=pinned)
+    geo.planes = planes
+    n_pinned = sum(
+        1 for j, p in (pinned or {}).items() if j in planes and planes[j][3:] == p[3:]
+        and abs(planes[j][2] - (p[2] + p[3] * (planes[j][0] - p[0]) + p[4] * (planes[j][1] - p[1]))) < 1e-6)
 
     conformed = conform()
     if deck.any():
@@ -1820,7 +1855,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None) -> RoadGeometry
         parts["marking"].append(_part("marking", v, f, fg, len(crossings), [e.id for e in crossings],
                                       ["zebra"] * len(crossings), [()] * len(crossings), xcent))
     geo.parts = {k: v for k, v in parts.items() if v}
-    geo.stats = {"lanes_meshed": len(lanes),
+    geo.stats = {"lanes_meshed": len(lanes), "planes_pinned": n_pinned,
                  "junctions_meshed": len(junction_part.ids) if junction_part is not None else 0,
                  "walkingareas_meshed": len({i for i, e in zip(pid, pel) if e == "walkingarea"}),  # (cut: pieces)
                  "junction_lanes_meshed": len(gap_lanes),

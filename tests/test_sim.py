@@ -202,6 +202,9 @@ def test_next_window_built_in_background_and_swapped_in(motorway_world):
         assert sim.streamer.swaps == 1, sim.streamer.errors
         assert sim.streamer.center == window
         assert sim.world.net_file.parent.parent == motorway_world / "windows" / f"{window[0]}_{window[1]}"
+        # the window kept the road heights of the world it replaced (netgen.build's register)
+        wj = json.loads((sim.world.net_file.parent.parent / "world.json").read_text())
+        assert wj["road_planes"]["pinned"] > 100
         kept = len(sim.mirror.active)
         d0 = sim.summary.distance_m
         for _ in range(200):
