@@ -235,7 +235,6 @@ class Autopilot:
         self._conflict_lanes: dict = {}   # lane -> _conflict_vias (per path)
         self._over_path: dict = {}        # junction lane -> the path's stretch near it, or () (per path)
         self._path_lanes: set = set()     # the lanes of the path
-        self._path_junctions: set = set()  # the junctions it goes through
         self._path_bridge = None          # per path point: on a bridge's lane (None: no bridge)
         self._standoff_with = None        # (vehicle, since): the car stands before it for its sweep
         self._released: set = set()       # vehicles taken out after a standoff (_standoff)
@@ -531,7 +530,6 @@ class Autopilot:
         self._too_steep = False
         self._over_path, self._conflict_lanes = {}, {}
         self._path_lanes = {ln for ln, _ in path.lane_of}
-        self._path_junctions = {junction_of(ln) for ln in self._path_lanes if ln.startswith(":")}
         self._s_goal = None
         sim = self.sim
         if sim.goal_xy is not None:
@@ -1070,22 +1068,25 @@ class Autopilot:
         return self._lane_vias.get(lane, ())
 
     def _over(self, path, lane: str) -> bool:
-        """Does junction lane `lane`, of a junction the path does not go through, come within
-        OVER_PATH_M of the path anywhere (cached per path; ``_lane_conflict`` looks closer)?
-        (In the path's own junctions SUMO's right of way decides: ``_junctions``.)"""
+        """Does junction lane `lane` come within OVER_PATH_M of the path anywhere (cached per
+        path; ``_lane_conflict`` looks closer)? The callers leave out the lanes SUMO makes foes
+        of the path's: there SUMO's right of way decides (``_junctions``). In the path's own
+        junctions too, a lane SUMO does not make a foe can run over the path (Monaco, dense seed
+        22: a car turning left from the opposite road swept across the car's right turn in
+        cluster_2104788829_..., SUMO's two links not foes; the car saw it only on the junction
+        lane, 7 m away, and it drove into the car standing)."""
         got = self._over_path.get(lane)
         if got is None:
             got = ()
-            if junction_of(lane) not in self._path_junctions:
-                P, _ = self._lane_shape(lane)
-                if len(P):
-                    lo, hi = P.min(axis=0) - OVER_PATH_M, P.max(axis=0) + OVER_PATH_M
-                    box = np.flatnonzero(np.all((path.xy >= lo) & (path.xy <= hi), axis=1))
-                    if len(box):
-                        d2 = ((P[:, None, :] - path.xy[box][None, :, :]) ** 2).sum(axis=2)
-                        close = box[d2.min(axis=0) < OVER_PATH_M ** 2]
-                        if len(close):      # the path's stretch near it
-                            got = (float(path.s[close.min()]), float(path.s[close.max()]))
+            P, _ = self._lane_shape(lane)
+            if len(P):
+                lo, hi = P.min(axis=0) - OVER_PATH_M, P.max(axis=0) + OVER_PATH_M
+                box = np.flatnonzero(np.all((path.xy >= lo) & (path.xy <= hi), axis=1))
+                if len(box):
+                    d2 = ((P[:, None, :] - path.xy[box][None, :, :]) ** 2).sum(axis=2)
+                    close = box[d2.min(axis=0) < OVER_PATH_M ** 2]
+                    if len(close):      # the path's stretch near it
+                        got = (float(path.s[close.min()]), float(path.s[close.max()]))
             self._over_path[lane] = got
         return bool(got)
 

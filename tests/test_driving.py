@@ -995,10 +995,12 @@ def test_a_car_heading_into_a_junction_lane_over_the_path_is_timed_from_beside_t
                                   np.array([lane], dtype=object))
 
         assert ap._over(path, via) and ap._conflict_vias(path, approach) == (via,)
-        # the same lane in a junction the path goes through is left to that junction's right of way
+        # the same lane in a junction the path goes through is watched too (Monaco, dense seed
+        # 22: a left turn from the opposite road swept across the car's right turn, SUMO's two
+        # links not foes); one SUMO makes a foe of the path's is left to the right of way (below)
         own = next(junction_of(ln) for ln, _ in path.lane_of if ln.startswith(":"))
         ap._lane_shapes[f":{own}_99_0"] = ap._lane_shapes[via]
-        assert not ap._over(path, f":{own}_99_0")
+        assert ap._over(path, f":{own}_99_0")
         # beside the car at 8 m/s: it comes to the lane over the path when the car does
         lead = ap._actors_on_path(vehicle(0.0, 8.0), car, s_e, path)
         assert lead is not None and lead.actor == "c1"
@@ -1010,6 +1012,9 @@ def test_a_car_heading_into_a_junction_lane_over_the_path_is_timed_from_beside_t
         assert ap._actors_on_path(vehicle(0.0, 8.0, "other_0"), car, s_e, path) is None
         # far behind: gone through long after the car
         assert ap._actors_on_path(vehicle(-40.0, 4.0), car, s_e, path) is None
+        # a junction lane SUMO makes a foe of the path's: the junction's right of way decides
+        ap._foe_lanes = lambda path_, s_: {via}
+        assert ap._actors_on_path(vehicle(0.0, 8.0), car, s_e, path) is None
     finally:
         sim.teardown()
 
