@@ -28,7 +28,10 @@ has finished, and what is left runs on both cores. Stages (timed; the report and
    and writes it; a second forked
    process, started once the roads are meshed, writes road tiles. Road tiles and
    buildings (lifted onto the levelled terrain: positions and bases into the prepared
-   files) are written piece by piece by whichever process is free;
+   files) are written piece by piece by whichever process is free.
+   The junction planes of the nodes 300 m or more inside the extent are written to
+   ``road_planes.npz``; a build given a register (``heights``: a streamed window gets its
+   world's) keeps the planes it holds and adds its own to it once the build is in place;
 5. ``world.json`` last: the world is built in a temporary folder and renamed into place, so
    a killed build never leaves a folder that looks complete (forked processes die with
    the build).

@@ -9,7 +9,9 @@ the road is level across its width; the lanes of an edge "-X" take theirs from t
 of its opposite edge "X" (the same road's other direction) where they project onto it, so the
 two directions meet without a step. Before that, the ends of the
 edges at each node are put on one plane of at most 7 % grade, the planes' heights solved for
-all nodes at once, each edge taking up its ends' moves linearly (:func:`_junction_planes`).
+all nodes at once, each edge taking up its ends' moves linearly (:func:`_junction_planes`; the
+planes of a register's nodes are kept, so that a streamed window's streets lie where the world
+before it had them: ``build_roads(pinned=...)``, :mod:`netgen.build`).
 Tunnels (OSM ``tunnel=*``, an edge parameter) are not meshed, nor the junctions where only
 tunnels meet (:func:`underground_junctions`). Bridges (``bridge=*``) are decks, straight
 between where they meet the ground (:func:`_bridge_decks`), risen over the roads under them
