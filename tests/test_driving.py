@@ -1731,3 +1731,30 @@ def test_a_lane_path_follows_both_halves_of_a_link_a_junction_splits(helsinki):
         assert found >= 3
     finally:
         sim.teardown()
+
+
+def test_a_car_at_the_crossing_approach_speed_stops_before_the_crossing():
+    """Where people wait at a crossing's end the car comes up at CROSSING_APPROACH_MPS; if they
+    step on as its front bumper is CROSSING_MARGIN_M before the crossing, the speed controller
+    (a SUMO step later) stops it before the crossing's edge. From 3 m/s it took 2.05 m (Lauf,
+    dense seed 20: two persons started across from the kerb beside the car, which stopped with
+    its bumper on one of them)."""
+    from cosim.autopilot import CROSSING_APPROACH_MPS, CROSSING_MARGIN_M
+    from cosim.driving import SpeedController
+
+    def stopping_distance(v0: float) -> float:
+        sc, v, dt = SpeedController(), v0, 0.01
+        for _ in range(100):                    # cruising at v0
+            sc.control(v0, v, dt)
+        x = v * 0.1                             # seen a step later
+        for _ in range(1000):
+            if v <= 0.01:
+                break
+            throttle, brake = sc.control(0.0, v, dt)
+            a = (throttle * sc.drive_force_max(v) - brake * sc.brake_force) / sc.mass
+            v = max(0.0, v + a * dt)
+            x += v * dt
+        return x
+
+    assert stopping_distance(CROSSING_APPROACH_MPS) < CROSSING_MARGIN_M - 0.1
+    assert stopping_distance(3.0) > CROSSING_MARGIN_M          # the old approach speed did not
