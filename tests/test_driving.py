@@ -1336,18 +1336,23 @@ def _lc_start_goal(sim):
     return at(HEL_LC_EDGE + "_1", 5.0), at(HEL_LC_NEXT + "_0", 30.0)
 
 
+def _lc_sim(world) -> Simulation:
+    """A simulation on Helsinki from 5 m into HEL_LC_EDGE's lane _1 to HEL_LC_NEXT, at 8 m/s."""
+    probe = start_sim(world, start=HEL_MID)
+    try:
+        start, goal = _lc_start_goal(probe)
+    finally:
+        probe.teardown()
+    return start_sim(world, start=start, goal=goal, speed_mps=8.0)
+
+
 def test_a_replan_in_a_lane_change_starts_on_the_lane_under_the_car(helsinki):
     """Along a lane change the path names the lane it changes into; a re-plan after a network
     swap started the new path on that lane while the car was still on the lane it came from,
     a lane's width beside it (Helsinki, seed 37: the car drove 3 m sideways through a standing
     queue). ``replan_from`` starts on the lane of the same edge under the car when that is
     nearer, so the new path begins under the car; on the target lane itself it stays there."""
-    probe = start_sim(helsinki, start=HEL_MID)
-    try:
-        start, goal = _lc_start_goal(probe)
-    finally:
-        probe.teardown()
-    sim = start_sim(helsinki, start=start, goal=goal, speed_mps=8.0)
+    sim = _lc_sim(helsinki)
     try:
         tr, path = sim.traffic, sim.path
         s = tr.sumo
@@ -1389,12 +1394,7 @@ def test_a_lane_change_holds_back_for_a_car_in_the_lane_changed_into(helsinki):
 
     from cosim.traffic import ActorsSnapshot
 
-    probe = start_sim(helsinki, start=HEL_MID)
-    try:
-        start, goal = _lc_start_goal(probe)
-    finally:
-        probe.teardown()
-    sim = start_sim(helsinki, start=start, goal=goal, speed_mps=8.0)
+    sim = _lc_sim(helsinki)
     try:
         ap, path, tr = sim.driver, sim.path, sim.traffic
         s = tr.sumo
