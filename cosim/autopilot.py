@@ -465,11 +465,11 @@ class Autopilot:
                     max(LC_MIN_GAP_M, vf * LC_REACT_S + (vf * vf - v * v) / (2.0 * LC_DECEL))
                 where = "behind"
             elif slow and (v >= LC_SLOW_MPS or s[j] - half > ego_front):
+                # (but a queue beside a car in a queue itself holds it: it cannot drop behind.
+                # Helsinki, seed 37: the car stood beside a standing car past the edge's
+                # deadline, its hold ran out, and on moving off it steered into the lane while
+                # the car was still beside it; SUMO counted a collision)
                 continue
-            # (a queue beside a car in a queue itself: it cannot drop behind, so it waits for
-            # the vehicle to move on. Helsinki, seed 37: the car stood beside a standing car
-            # past the edge's deadline, its hold ran out, and on moving off it steered into
-            # the lane while the car was still beside it; SUMO counted a collision)
             elif s[j] - half > ego_front:
                 gap = (s[j] - half) - ego_front
                 need = max(LC_MIN_GAP_M, v * 0.5 + (v * v - vf * vf) / (2.0 * LC_DECEL))

@@ -1368,8 +1368,16 @@ class SumoTraffic(Component):
         of the old ``route`` (from the start lane's edge on) is kept where this network has all
         of it: the car keeps its lanes (a new route may want another lane at once, a lane
         change in a queue)."""
-        self._require()
+        s = self._require()
         known = self._id_set("lane")
+        try:
+            snapped = self.snap_lane(x, y)
+        except SimulationError:
+            snapped = None
+        # the lane under the car, if it runs the car's way: (lane, position, distance)
+        under = None
+        if snapped is not None and abs(math.remainder(snapped[4] - yaw, math.tau)) < math.pi / 4:
+            under = (snapped[0], snapped[1], snapped[5])
         start = None
         if lanes and lanes[0] in known:
             start = (lanes[0], self.lane_pos(lanes[0], x, y))
@@ -1377,26 +1385,15 @@ class SumoTraffic(Component):
             # still be on the one it came from (Helsinki, seed 37: a swap on a 16 m edge; the new
             # path began on the next lane, 3 m beside the car, which drove over to it through a
             # standing queue): the lane under the car, if it is one of the same edge
-            try:
-                cand, cpos, _, _, lyaw, dist = self.snap_lane(x, y)
-            except SimulationError:
-                cand = None
-            if cand is not None and cand != lanes[0] and not lanes[0].startswith(":") \
-                    and cand.rsplit("_", 1)[0] == lanes[0].rsplit("_", 1)[0] \
-                    and abs(math.remainder(lyaw - yaw, math.tau)) < math.pi / 4:
-                own = _polyline_distance(np.asarray(self._require().lane.getShape(lanes[0]), dtype=float), x, y)
-                if dist < own - 0.5:
-                    start = (cand, cpos)
-        else:
-            try:
-                cand, cpos, _, _, lyaw, dist = self.snap_lane(x, y)
-                if dist < 2.0 and abs(math.remainder(lyaw - yaw, math.tau)) < math.pi / 4:
-                    start = (cand, cpos)
-            except SimulationError:
-                pass
+            if under is not None and under[0] != lanes[0] and not lanes[0].startswith(":") \
+                    and under[0].rsplit("_", 1)[0] == lanes[0].rsplit("_", 1)[0] \
+                    and under[2] < _polyline_distance(np.asarray(s.lane.getShape(lanes[0]), dtype=float), x, y) - 0.5:
+                start = under[:2]
+        elif under is not None and under[2] < 2.0:
+            start = under[:2]
         if start is None:
             nxt = next((ln for ln in lanes[1:] if ln in known and not ln.startswith(":")), None)
-            start = (nxt, 0.0) if nxt else self.snap_lane(x, y)[:2]
+            start = (nxt, 0.0) if nxt else (snapped or self.snap_lane(x, y))[:2]
         edge = start[0].rsplit("_", 1)[0]
         route = list(route)
         if kw.get("goal_xy") is None and edge in route:

@@ -923,13 +923,14 @@ def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, juncti
     world it replaces) gave the same street heights up to 0.45 m apart (Portland: the car's
     tile, replaced under it at a swap, trapped it); a window pins the planes the builds before
     it gave (:mod:`netgen.build`, ``road_planes.npz``).
-    Returns how many ends moved by more than 1 cm."""
+    Returns (how many ends moved by more than 1 cm, how many of ``pinned``'s nodes kept their
+    plane)."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import spsolve
 
     n = len(ref_e)
     if n == 0:
-        return 0
+        return 0, 0
     first = np.r_[0, np.nonzero(rg[1:] != rg[:-1])[0] + 1]
     last = np.r_[first[1:] - 1, len(rg) - 1]
     # junctions that overlap share one plane (a cluster no wider than cluster_m)
@@ -1036,7 +1037,8 @@ def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, juncti
         # edges' ends now lie
         for j, k in ids.items():
             planes_out[j] = (float(mx[k]), float(my[k]), float(mz[k] + c[k]), float(gx[k]), float(gy[k]))
-    return int(np.sum(np.abs(dz_end) > 0.01))
+    n_pinned = sum(1 for j, k in ids.items() if fx[k] and j in pinned) if pinned else 0
+    return int(np.sum(np.abs(dz_end) > 0.01)), n_pinned
 
 
 def _junction_clusters(junctions: dict, reach: float = 0.3, cluster_m: float = 40.0) -> dict:
@@ -1424,12 +1426,9 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
                                                only=vehicle_edge[ref_e[rg]], cache=overlaps, twins=True)
     conform()
     planes: dict = {}
-    ends_moved = _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=edge_hw[ref_e], junctions=jrings,
-                                  planes_out=planes, deck=deck, pinned=pinned)
+    ends_moved, n_pinned = _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=edge_hw[ref_e],
+                                            junctions=jrings, planes_out=planes, deck=deck, pinned=pinned)
     geo.planes = planes
-    n_pinned = sum(
-        1 for j, p in (pinned or {}).items() if j in planes and planes[j][3:] == p[3:]
-        and abs(planes[j][2] - (p[2] + p[3] * (planes[j][0] - p[0]) + p[4] * (planes[j][1] - p[1]))) < 1e-6)
 
     conformed = conform()
     if deck.any():
