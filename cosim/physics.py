@@ -120,6 +120,7 @@ class PhysicsWorld:
         self.client = None
         self.tiles: dict = {}
         self._stale: set = set()          # loaded tiles a newer window replaced (refresh)
+        self.replaced_now: list = []      # tiles of which update() replaced parts in its last call
         self._loading: dict = {}          # tile -> (TileBodies, its parts still to make): being loaded
         self._shape_pool: dict = {}       # (file, collide) -> (collision id, visual id)
         self._prefabs: dict = {}
@@ -198,6 +199,7 @@ class PhysicsWorld:
             go = hurry or missing(urgent_radius) or spare is None or spare()
         t0 = time.perf_counter()
         loaded = parts = 0
+        self.replaced_now = []
         for k in todo if go else ():
             if parts and (not hurry or (time.perf_counter() - t0) * 1000.0 > budget):
                 break
@@ -206,6 +208,8 @@ class PhysicsWorld:
             job = self._loading.get(k)
             if job is None:
                 job = self._loading[k] = self._start_tile(k)
+            if job[2] is not None:
+                self.replaced_now.append(k)
             while True:
                 done = next(job[1], _DONE) is _DONE
                 parts += 1

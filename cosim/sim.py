@@ -81,6 +81,7 @@ class Summary:
     swap_ms_max: float = 0.0
     swap_wait_s: float = 0.0         # wall time a repeatable run waited for late window builds
     sumo_restarts: int = 0           # SUMO's worker process crashed and was started again
+    lifted_out: int = 0              # the car set on top of a replaced tile's higher ground (_lift_out)
     frame_ms_median: float = 0.0
     frame_ms_p999: float = 0.0
     frame_ms_max: float = 0.0
@@ -96,11 +97,13 @@ class Summary:
                 f"windows built {self.windows_built}, SUMO network swaps {self.network_swaps}"
                 + (f" (waited {self.swap_wait_s:.1f} s for late builds)" if self.swap_wait_s else "")
                 + (f"; SUMO restarted after a crash {self.sumo_restarts} time(s)" if self.sumo_restarts else "")
+                + (f"; the car set on top of new, higher ground {self.lifted_out} time(s)" if self.lifted_out else "")
                 + (f"; vehicles taken out after a standoff with the ego {self.standoffs_released}"
                    if self.standoffs_released else "")
                 + f".{arr}")
 
 
+LIFT_CHECK_M = 8.0          # a tile replaced within this distance of the car: is the car caught in its ground?
 MAX_SUMO_RESTARTS = 5      # a SUMO worker that keeps crashing ends the run
 
 
@@ -441,6 +444,8 @@ class Simulation:
                             critical_radius=self.cfg.sensor_range_m + self.world.tile_size * 0.25,
                             spare=self.traffic.busy if pipelined else None)
         self.last_tiles_ms = (time.perf_counter() - t_tiles) * 1000.0
+        if self.physics.replaced_now:
+            self._lift_out(st)
         self._swap_hold = max(0, self._swap_hold - 1)
         self.streamer.step(st.x, st.y)
         if not self._covered(st.x, st.y):
@@ -519,6 +524,19 @@ class Simulation:
             self._path_idx = self.path.project(st.x, st.y, 0, window=len(self.path.xy))[0]
         except (ValueError, CosimError) as e:
             log.info("could not extend the route: %s", e)
+
+    def _lift_out(self, st) -> None:
+        """Tiles near the car were replaced from a newer build this frame: if the road under
+        the car is now higher than the car (the two builds' heights differ there), the car
+        goes on top of it (``EgoVehicle.lift_out``) rather than stay caught in it."""
+        near = set(self.world.tiles_within(st.x, st.y, LIFT_CHECK_M))
+        if not near.intersection(self.physics.replaced_now):
+            return
+        rise = self.vehicle.lift_out()
+        if rise > 0.0:
+            self.summary.lifted_out += 1
+            log.warning("t=%.1f s: the ground under the car came up %.2f m with a new tile; the car was "
+                        "set on top of it", self.t, rise)
 
     def _check_collisions(self):
         """Count and log the ego's collisions: a chassis contact with a mirrored actor, or a

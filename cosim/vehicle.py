@@ -286,6 +286,8 @@ HOLD_DAMPING = 0.7  # damping ratio of that spring
 
 _TWO_PI = 2.0 * math.pi
 SPAWN_CLEARANCE = 0.03  # m dropped onto the ground when spawned / reset
+LIFT_MIN_STEP_M = 0.1   # lift_out: ground this far above the car's footprint puts the car on top of it
+LIFT_REACH_M = 1.0      # lift_out: rays from this far above the footprint (under any bridge deck)
 # The chassis' collision group: the wheel rays skip it (a ray from inside the body never hits
 # the body). The chassis still collides with everything (its mask is all groups).
 CHASSIS_COLLISION_GROUP = 1 << 6
@@ -490,6 +492,36 @@ class EgoVehicle:
             z, pitch, roll = float(z), -math.atan(float(b)), math.atan(float(cc))
         self.reset((x, y, z), yaw, pitch=pitch, roll=roll)
         return z, pitch, roll
+
+    def lift_out(self, min_step: float = LIFT_MIN_STEP_M, reach: float = LIFT_REACH_M) -> float:
+        """Put the car back on top of the ground when the ground under it came up: a newer
+        build's tile replaced the one it drove on, and its road there is higher (Portland,
+        seed 35: 0.36 m, the body inside the new asphalt and pressed down onto the terrain, the
+        car stood for the rest of the run). One ray per wheel and one at the centre, from
+        ``reach`` above the car's footprint down to below it; when the plane fitted to the hits
+        is more than ``min_step`` above the footprint, the car is set onto it with its speed,
+        yaw rate and steering. Returns the rise (m; 0 when the car stays where it is)."""
+        st = self.state()
+        c, s = math.cos(st.yaw), math.sin(st.yaw)
+        uv = [(wx, wy) for wx, wy, _ in self.spec.wheel_positions] + [(0.0, 0.0)]
+        starts, ends = [], []
+        for u, v in uv:
+            px, py = st.x + c * u - s * v, st.y + s * u + c * v
+            starts.append((px, py, st.z + reach))
+            ends.append((px, py, st.z - reach))
+        hits = p.rayTestBatch(starts, ends, numThreads=1, collisionFilterMask=self._ray_mask,
+                              physicsClientId=self.client)
+        rows = [(1.0, u, v, h[3][2]) for (u, v), h in zip(uv, hits) if h[0] >= 0]
+        if len(rows) < 3:
+            return 0.0
+        A = np.array([r[:3] for r in rows])
+        z, b, cc = np.linalg.lstsq(A, np.array([r[3] for r in rows]), rcond=None)[0]
+        rise = float(z) - st.z
+        if rise <= min_step:
+            return 0.0
+        self.set_pose_velocity((st.x, st.y, float(z)), st.yaw, speed=st.speed, yaw_rate=st.yaw_rate,
+                               pitch=-math.atan(float(b)), roll=math.atan(float(cc)))
+        return rise
 
     def set_pose_velocity(self, position: tuple[float, float, float], yaw: float, speed: float = 0.0,
                           yaw_rate: float = 0.0, *, pitch: float = 0.0, roll: float = 0.0,

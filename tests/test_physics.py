@@ -177,6 +177,7 @@ def test_tiles_load_a_part_at_a_time_within_the_budget(monaco_world):
         while part.tiles[key] is old:
             part.update(kx, ky, 10.0, budget_ms=0.0)
             calls += 1
+            assert part.replaced_now == [key]          # (what the loop checks the car against)
             assert key in part.tiles and part.covered(kx, ky, 5.0)
             job = part._loading.get(key)
             if job is not None:
@@ -185,6 +186,8 @@ def test_tiles_load_a_part_at_a_time_within_the_budget(monaco_world):
                     assert live_old != (kind in job[0].kinds), kind
             assert calls <= 50
         assert not part._stale and not part._loading
+        part.update(kx, ky, 10.0, budget_ms=0.0)
+        assert part.replaced_now == []
         new = part.tiles[key]
         assert set(new.kinds) == set(kinds_whole) and all(b is None for b in old.bodies)
         assert all(b is not None for b in new.bodies)

@@ -732,3 +732,30 @@ def test_10_percent_heightfield_grade_pi_and_parking(client_at, hz):
             errors.append(10.0 - s.speed)
     assert max(map(abs, errors)) <= 0.3, f"speed error up to {max(map(abs, errors)):.2f} m/s"
     assert s.z == pytest.approx(GRADE * s.x, abs=0.05) and s.z > 25.0
+
+
+def test_lift_out_puts_the_car_on_top_of_new_higher_ground(client_at, tmp_path):
+    """A tile replaced under a moving car by a newer build whose road is higher there (Portland
+    seed 35: 0.36 m): the car's body is inside the new road. ``lift_out`` sets it on top, with
+    its speed; without it the car is caught. A step under ``LIFT_MIN_STEP_M`` is left alone."""
+    def caught_in(rise: float, lift: bool):
+        cid = client_at(HZ)
+        mesh_body(cid, write_obj(tmp_path / "old.obj", *lane_strip(-30.0, 300.0, -6.0, 6.0)))
+        car = V.EgoVehicle(cid)
+        car.set_pose_velocity((0.0, 0.0, 0.0), 0.0, speed=8.0, clearance=0.0)
+        s0 = step(car, 0.5, throttle=0.3)
+        mesh_body(cid, write_obj(tmp_path / f"new{rise}.obj", *lane_strip(-30.0, 300.0, -6.0, 6.0, z=rise)))
+        lifted = car.lift_out() if lift else 0.0
+        s = step(car, 3.0, throttle=0.3)
+        return s0, lifted, s
+
+    s0, lifted, s = caught_in(0.36, lift=True)
+    assert lifted == pytest.approx(0.36 - s0.z, abs=0.03)
+    assert s.x > s0.x + 20.0 and s.speed > 6.0, f"the lifted car went {s.x - s0.x:.1f} m at {s.speed:.1f} m/s"
+    assert s.z == pytest.approx(0.36, abs=0.05) and all(s.wheel_contact) and upright(s)
+    # without: Bullet pushes the body out of the road it is caught in, and that stops the car
+    s0n, _, sn = caught_in(0.36, lift=False)
+    assert sn.x - s0n.x < 0.5 * (s.x - s0.x), f"without lift_out the car went {sn.x - s0n.x:.1f} m"
+    # a small step: the wheels take it, lift_out does nothing
+    s0, lifted, s = caught_in(0.05, lift=True)
+    assert lifted == 0.0 and s.x > s0.x + 20.0
