@@ -94,6 +94,7 @@ STANDOFF_S = 20.0          # the car and a vehicle in its sweep both standing th
 LEVEL_REACH_M = 40.0       # ... looked at for actors this near (in x and y) where the path is up there
 CROSS_LANE_MARGIN_M = 3.5  # a crossing vehicle's road may have a lane nearer than its own
 LANE_CONFLICT_MARGIN_M = 0.5  # a junction lane over the path: clear of the two bodies by this
+MERGE_BEHIND_M = 1.0       # _lane_conflict: a lane merging in beside the car is left to its vehicle if the car's rear is this far past the join when it gets there
 ROLLBACK_MPS = 0.3           # moving backwards this fast while driving forward: brakes (control)
 OVER_PATH_M = 3.0            # a junction lane this near the path is looked at closer (_over)
 MERGE_WATCH_M = 2.5        # a vehicle in a lane the path changes into is followed from this far beside
@@ -951,7 +952,8 @@ class Autopilot:
                         # the end of the road in: Monaco): timed along its own lane, or along
                         # the lane it is on and on into such a junction lane
                         if lane.startswith(":"):
-                            hit = self._lane_conflict(path, lane, actors, i, s_here, v_ego)
+                            hit = None if lane in self._path_lanes else \
+                                self._lane_conflict(path, lane, actors, i, s_here, v_ego)
                         else:
                             hit = None
                             vias = self._conflict_lanes.get(lane)
@@ -1079,7 +1081,10 @@ class Autopilot:
         got = self._over_path.get(lane)
         if got is None:
             got = ()
-            P, _ = self._lane_shape(lane)
+            # (not the path's own lanes: a vehicle headed onto them is on the path behind the
+            # car; Lauf, seed 40: one coming up 9 m behind, its junction lane taken for one
+            # over the path, braked the car from 4.5 to 1.8 m/s in the junction)
+            P, _ = self._lane_shape(lane) if lane not in self._path_lanes else ((), None)
             if len(P):
                 lo, hi = P.min(axis=0) - OVER_PATH_M, P.max(axis=0) + OVER_PATH_M
                 box = np.flatnonzero(np.all((path.xy >= lo) & (path.xy <= hi), axis=1))
@@ -1161,6 +1166,17 @@ class Autopilot:
             # (stopping there is what would put it in the vehicle's way; a Monaco car braked
             # from 8.2 to 2.5 m/s for one 11 m off to the side at 3.3 m/s)
             return None
+        else:
+            # the car is in the stretch, and the vehicle's lane joins the path there going the
+            # same way: if the car's rear is past the join by the time the vehicle gets to it,
+            # the vehicle comes up behind the car, whose stopping would only put it in its way
+            # (seed 40, Lauf, Helsinki, Portland: six brakes to a crawl inside junctions for cars
+            # 9-18 m behind on a lane merging in)
+            i_join, i_last = int(np.argmin(np.where(hit, arc, np.inf))), int(np.argmax(np.where(hit, arc, -np.inf)))
+            s_join = float(s[i_join])
+            if pos < a0 and float(s[i_last]) > s_join + 1.0 \
+                    and s_here - (self.length - self.front) + v_ego * t_in > s_join + MERGE_BEHIND_M:
+                return None
         return Lead(max(0.0, gap - LANE_CONFLICT_MARGIN_M), 0.0, "vehicle", "actors", str(actors.ids[i]))
 
     @staticmethod

@@ -947,6 +947,33 @@ def test_a_car_already_on_a_crossing_junction_lane_goes_on_when_it_clears_it_in_
         assert ap._lane_conflict(path, lane, vehicle(-1.0, 0.0), 0, s_e, 8.0) is not None
         # the car itself slow: the same far vehicle comes before it is out
         assert ap._lane_conflict(path, lane, vehicle(25.0, 3.0), 0, s_e, 0.5) is not None
+
+        # a lane that comes in from behind on the left and joins the path beside the car, then
+        # runs on along it: a vehicle on it behind the car comes up behind it (Lauf, seed 40:
+        # the car braked from 4.5 to 1.8 m/s in a junction for one 9 m behind at 3.7 m/s)
+        h_e = path.heading_at(s_e)
+        e = np.array(path.point_at(s_e), dtype=float)
+        t_, n_ = np.array([math.cos(h_e), math.sin(h_e)]), np.array([-math.sin(h_e), math.cos(h_e)])
+        P = _resample(np.array([e - 8.0 * t_ + 8.0 * n_, e + 1.0 * t_, e + 30.0 * t_]), 1.0)
+        merge = ":m_0_0"
+        ap._lane_shapes[merge] = (P, np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(P, axis=0).T))]))
+        d = (P[1] - P[0]) / np.hypot(*(P[1] - P[0]))
+
+        def merging(back: float, speed: float):
+            """A car on that lane, its front `back` m along the lane from where it begins."""
+            i = int(round(back))
+            d_ = (P[i + 1] - P[i]) / np.hypot(*(P[i + 1] - P[i]))
+            x, y = P[i] - 2.25 * d_
+            return ActorsSnapshot(0.0, np.array(["m1"], dtype=object), np.array(["passenger"], dtype=object),
+                                  one(x), one(y), one(math.atan2(d_[1], d_[0])), one(4.5), one(1.8), one(1.5),
+                                  one(speed), one(0.0), np.array([merge], dtype=object))
+
+        assert d @ t_ > 0.5                            # (it runs the path's way)
+        assert ap._lane_conflict(path, merge, merging(3.0, 3.7), 0, s_e, 4.5) is None
+        # the car creeping: the vehicle would get to the join with the car still beside it
+        assert ap._lane_conflict(path, merge, merging(3.0, 3.7), 0, s_e, 0.3) is not None
+        # standing on the lane ahead of the car, past the join: in the car's way
+        assert ap._lane_conflict(path, merge, merging(30.0, 0.0), 0, s_e, 4.5) is not None
     finally:
         sim.teardown()
 
@@ -1001,6 +1028,10 @@ def test_a_car_heading_into_a_junction_lane_over_the_path_is_timed_from_beside_t
         own = next(junction_of(ln) for ln, _ in path.lane_of if ln.startswith(":"))
         ap._lane_shapes[f":{own}_99_0"] = ap._lane_shapes[via]
         assert ap._over(path, f":{own}_99_0")
+        # but not the path's own junction lanes: a vehicle headed onto them comes along the
+        # path behind the car (Lauf, seed 40: one 9 m behind braked the car in the junction)
+        mine = next(ln for ln, _ in path.lane_of if ln.startswith(":"))
+        assert not ap._over(path, mine)
         # beside the car at 8 m/s: it comes to the lane over the path when the car does
         lead = ap._actors_on_path(vehicle(0.0, 8.0), car, s_e, path)
         assert lead is not None and lead.actor == "c1"
