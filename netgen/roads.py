@@ -73,6 +73,8 @@ JUNCTION_MAX_GRADE = 0.07
 EDGE_MAX_GRADE = 0.25
 #: a pinned plane (_junction_planes) is taken by a node whose edge ends' mean is this near it
 PIN_MATCH_M = 0.5
+OWN_PLANE_REACH_M = 0.5         # _onto_own_plane: an edge's points this near its one plane's junctions lie on it
+OWN_PLANE_FADE_M = 5.0          # and further out come back to their own height over this distance
 #: passes of a [1 2 1] / 4 filter over each edge's height profile (points about 2.5 m apart;
 #: 8 passes: a vertical curve of about 10 m where the ground's grade changes)
 PROFILE_SMOOTH_PASSES = 8
@@ -1041,6 +1043,58 @@ def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, juncti
     return int(np.sum(np.abs(dz_end) > 0.01)), n_pinned
 
 
+def _onto_own_plane(edges, lanes, lane_edge, C, cg, cz, tilt, unit_left, planes, junctions,
+                    reach: float = OWN_PLANE_REACH_M, fade: float = OWN_PLANE_FADE_M) -> int:
+    """A lane whose two ends lie on one plane (its edge joins two junctions drawn into each
+    other, which share one plane, or loops back to its node) runs inside that junction
+    surface: its points within ``reach`` of the polygons of the junctions on that plane go
+    onto it, with the plane's slope across the lane, and those further out fade back to their
+    own height over ``fade`` m (``cz`` and ``tilt`` in place). (A lane takes its height from its
+    edge's profile, and netconvert can draw a lane far longer than its edge: Monaco's
+    `161880706_2`, a 5.9 m edge between two such junctions, is drawn 20 m across them, the
+    edge's profile 0.14 m long; it stood 0.4 m over their surface, a kerb that stopped a car
+    dead at 7.9 m/s.) Returns how many points moved more than 1 cm."""
+    if not len(C) or not planes or not junctions:
+        return 0
+    lane_no = np.unique(cg)
+    same = [k for k in lane_no.tolist()
+            if planes.get(edges[lane_edge[k]].from_node) is not None
+            and planes.get(edges[lane_edge[k]].from_node) == planes.get(edges[lane_edge[k]].to_node)]
+    if not same:
+        return 0
+    by_plane: dict = {}
+    for k in same:
+        by_plane.setdefault(planes[edges[lane_edge[k]].from_node], []).append(k)
+    members: dict = {}
+    for j, pl in planes.items():
+        if pl in by_plane and j in junctions and len(junctions[j]) >= 3:
+            members.setdefault(pl, []).append(j)
+    jids = [j for js in members.values() for j in js]
+    if not jids:
+        return 0
+    R, rgi = _concat([np.asarray(junctions[j], dtype=float)[:, :2] for j in jids])
+    poly = dict(zip(jids, shapely.polygons(shapely.linearrings(R, indices=rgi))))
+    moved = 0
+    for pl, ks in by_plane.items():
+        js = members.get(pl)
+        if not js:
+            continue
+        ks = np.array(ks)
+        lo, hi = np.searchsorted(cg, ks, "left"), np.searchsorted(cg, ks, "right")
+        pts = np.concatenate([np.arange(a, b) for a, b in zip(lo, hi)])
+        P = shapely.points(C[pts])
+        d = shapely.distance(np.array([poly[j] for j in js])[:, None], P[None, :]).min(axis=0)
+        w = np.clip((d - reach) / fade, 0.0, 1.0)
+        x0, y0, z0, gx, gy = pl
+        zp = z0 + gx * (C[pts, 0] - x0) + gy * (C[pts, 1] - y0)
+        new = zp + w * (cz[pts] - zp)
+        moved += int(np.sum(np.abs(new - cz[pts]) > 0.01))
+        cz[pts] = new
+        across = gx * unit_left[pts, 0] + gy * unit_left[pts, 1]
+        tilt[pts] = across + w * (tilt[pts] - across)
+    return moved
+
+
 def _junction_clusters(junctions: dict, reach: float = 0.3, cluster_m: float = 40.0) -> dict:
     """Junctions whose polygons touch (within ``reach``), grouped while a group's bounding box
     stays within ``cluster_m`` (a chain of them along a steep street is not made one plane):
@@ -1480,6 +1534,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     # each lane's ends onto its nodes' planes, across its width too: cz moves, and the lane
     # tilts across (tilt: height gained per metre to the left) near its ends
     tilt = _ends_on_planes(edges, lanes, lane_edge, C, cg, cz, cs, ctot, nrm / hw[:, None], planes)
+    own_plane = _onto_own_plane(edges, lanes, lane_edge, C, cg, cz, tilt, nrm / hw[:, None], planes, jrings)
     side = np.array([l.pedestrian_only for l in lanes])
     rail = np.array([bool(l.allowed) and l.allowed <= RAIL_CLASSES for l in lanes])
     drive = np.array([l.drivable for l in lanes])
@@ -1856,7 +1911,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
         parts["marking"].append(_part("marking", v, f, fg, len(crossings), [e.id for e in crossings],
                                       ["zebra"] * len(crossings), [()] * len(crossings), xcent))
     geo.parts = {k: v for k, v in parts.items() if v}
-    geo.stats = {"lanes_meshed": len(lanes), "planes_pinned": n_pinned,
+    geo.stats = {"lanes_meshed": len(lanes), "planes_pinned": n_pinned, "own_plane_points": own_plane,
                  "junctions_meshed": len(junction_part.ids) if junction_part is not None else 0,
                  "walkingareas_meshed": len({i for i, e in zip(pid, pel) if e == "walkingarea"}),  # (cut: pieces)
                  "junction_lanes_meshed": len(gap_lanes),
