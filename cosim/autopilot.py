@@ -149,7 +149,7 @@ class Lead:
     gap: float                 # m, bumper to bumper along the path
     speed: float               # m/s along the path (0 for static obstacles and pedestrians)
     kind: str                  # "vehicle", "person", "static"
-    source: str                # "lidar", "actors", "sumo"
+    source: str                # "lidar", "actors", "sumo"; "conflict": on a lane over the path (_lane_conflict)
     actor: str = ""
     track_gap: float | None = None     # a vehicle crossing the path: the gap to its track (the
     # gap above is to where the car stops, CROSS_LANE_MARGIN_M before it); a person walking into
@@ -482,13 +482,17 @@ class Autopilot:
         return worst[:3] if worst is not None else None
 
     def _standoff(self, v: float, t: float, actors) -> None:
-        """A standoff: the car stands for its sweep's sake (``clearance``) before a vehicle that
-        stands too, STANDOFF_S and more, and SUMO has that vehicle wait for nothing it can see
-        (no red light or queue ahead of it): it waits for the car (Monaco, seed 17: a car
-        stood inside a junction, waiting for the car, which waited for it, until SUMO teleported
-        it 120 s later). That vehicle is taken out of SUMO (``SumoTraffic.release_standoff``:
+        """A standoff: the car stands for its sweep's sake (``clearance``), or for a vehicle on
+        a junction lane over its path, before a vehicle that stands too, STANDOFF_S and more,
+        and SUMO has that vehicle wait for nothing it can see (no red light or queue ahead of
+        it) but the car: it waits for the car (Monaco, seed 17: a car stood inside a junction,
+        waiting for the car, which waited for it, until SUMO teleported it 120 s later; seed 1:
+        the car waited for a car standing on a lane over its path, which waited behind a car
+        SUMO had merge ahead of it, which waited behind the car). That vehicle is taken out of SUMO (``SumoTraffic.release_standoff``:
         SUMO's own remedy for a jam, sooner), once."""
         who = self.sweep[1] if self.sweep is not None and self.reason.startswith("clearance") else None
+        if who is None and self.reason == "lead vehicle" and self.lead is not None and self.lead.source == "conflict":
+            who = self.lead.actor      # (waited for on a lane over the path: Monaco, seed 1)
         if who is None or v > 0.1:
             self._standoff_with = None
             return
@@ -1177,7 +1181,7 @@ class Autopilot:
             if pos < a0 and float(s[i_last]) > s_join + 1.0 \
                     and s_here - (self.length - self.front) + v_ego * t_in > s_join + MERGE_BEHIND_M:
                 return None
-        return Lead(max(0.0, gap - LANE_CONFLICT_MARGIN_M), 0.0, "vehicle", "actors", str(actors.ids[i]))
+        return Lead(max(0.0, gap - LANE_CONFLICT_MARGIN_M), 0.0, "vehicle", "conflict", str(actors.ids[i]))
 
     @staticmethod
     def _at_path_junction(tr, lane: str, junctions: set) -> bool:

@@ -64,6 +64,7 @@ PROBE_ID = "cosim_probe"
 CONTEXT_MARGIN = 20.0   # m: front-bumper anchors vs centre distances (half a bus + half the ego)
 DEFAULT_CONTEXT_RADIUS = 150.0
 EGO_JOINT_NUDGE_M = 0.3       # a front bumper in the gap at a lane joint is mapped this far on (_across_joint)
+STANDOFF_CHAIN = 2            # release_standoff: standing vehicles between the one taken out and the ego
 EGO_MATCH_RADIUS_M = 15.0      # the ego is mapped onto a lane within this distance, else off the network
 PERSON_YIELD_RANGE_M = 15.0    # pedestrians this near the ego are checked (see _persons_yield)
 PERSON_YIELD_MARGIN_M = 0.5    # they stop this far outside the ego's footprint
@@ -611,7 +612,8 @@ class SumoTraffic(Component):
     def release_standoff(self, vid: str, waited_s: float) -> bool:
         """Take vehicle `vid` out of SUMO if it has stood `waited_s` (less a second) for no
         reason SUMO shows: no red or yellow light within 30 m ahead of it, no standing vehicle
-        within 10 m ahead but the ego, no stop of its own. The autopilot asks this after a
+        within 10 m ahead but the ego or one that stands behind the ego (up to STANDOFF_CHAIN
+        of them, each within 10 m of the next), no stop of its own. The autopilot asks this after a
         standoff (the car waits for it, it waits for the car; SUMO would teleport it after
         ``time_to_teleport``). Returns whether it was taken out."""
         s = self._require()
@@ -624,8 +626,15 @@ class SumoTraffic(Component):
             tls = s.vehicle.getNextTLS(vid)
             if tls and tls[0][2] < 30.0 and tls[0][3] in "rRyYu":
                 return False
-            lead = s.vehicle.getLeader(vid, 10.0)
-            if lead and lead[0] and lead[0] != EGO_ID and lead[1] < 10.0 and s.vehicle.getSpeed(lead[0]) < 0.1:
+            # (a standing vehicle ahead of it is a queue, unless that one, or the one it stands
+            # behind, waits for the ego: a circle with the car)
+            lead, hops = s.vehicle.getLeader(vid, 10.0), 0
+            while lead and lead[0] and lead[0] != EGO_ID and lead[1] < 10.0 and s.vehicle.getSpeed(lead[0]) < 0.1:
+                hops += 1
+                if hops > STANDOFF_CHAIN:
+                    return False
+                lead = s.vehicle.getLeader(lead[0], 10.0)
+            if hops and not (lead and lead[0] == EGO_ID and lead[1] < 10.0):
                 return False
             s.vehicle.remove(vid, tc.REMOVE_VAPORIZED)
         except self._exc:

@@ -865,17 +865,19 @@ def test_a_standoff_with_a_vehicle_in_the_sweep_ends_with_it_taken_out_of_sumo(h
                     and "passenger" in (s.lane.getAllowed(ln) or ("passenger",))), key=s.lane.getLength)
         edge = lane.rsplit("_", 1)[0]
         s.route.add("r_stand", [edge])
-        s.vehicle.add("stander", "r_stand", typeID="DEFAULT_VEHTYPE", depart="now", departPos="20",
-                      departSpeed="0", departLane=lane.rsplit("_", 1)[1])
-        for _ in range(int(STANDOFF_S / 0.1) + 20):      # it stands, in SUMO, a little longer
-            s.vehicle.setSpeed("stander", 0.0)
+        for vid, pos in (("stander2", "60"), ("stander", "20")):
+            s.vehicle.add(vid, "r_stand", typeID="DEFAULT_VEHTYPE", depart="now", departPos=pos,
+                          departSpeed="0", departLane=lane.rsplit("_", 1)[1])
+        for _ in range(int(STANDOFF_S / 0.1) + 20):      # they stand, in SUMO, a little longer
+            for vid in ("stander", "stander2"):
+                s.vehicle.setSpeed(vid, 0.0)
             tr.step()
-        assert "stander" in s.vehicle.getIDList()
+        assert {"stander", "stander2"} <= set(s.vehicle.getIDList())
         x, y = s.vehicle.getPosition("stander")
         one = lambda v: np.array([v])                    # noqa: E731
 
-        def snap(kind="passenger", speed=0.0):
-            return ActorsSnapshot(0.0, np.array(["stander"], dtype=object), np.array([kind], dtype=object),
+        def snap(kind="passenger", speed=0.0, vid="stander"):
+            return ActorsSnapshot(0.0, np.array([vid], dtype=object), np.array([kind], dtype=object),
                                   one(x), one(y), one(0.0), one(4.5), one(1.8), one(1.5), one(speed), one(0.0),
                                   np.array([lane], dtype=object))
 
@@ -902,6 +904,19 @@ def test_a_standoff_with_a_vehicle_in_the_sweep_ends_with_it_taken_out_of_sumo(h
         assert [e for e in ap.stats.events if e[1] == "standoff"][0][2].startswith("stander")
         tr.step()
         assert "stander" not in s.vehicle.getIDList() and tr.stats.released == 1
+        # the car waiting for a vehicle standing on a lane over its path (Monaco, seed 1: a
+        # circle of waits through SUMO's merge): the same; not for a lead on its own lanes
+        from cosim.autopilot import Lead
+
+        ap.sweep, ap.reason = None, "lead vehicle"
+        for source, n in (("actors", 1), ("conflict", 2)):
+            ap.lead, t0 = Lead(4.0, 0.0, "vehicle", source, "stander2"), t
+            while t < t0 + STANDOFF_S + 2.0:
+                ap._standoff(0.0, t, snap(vid="stander2"))
+                t += 0.5
+            assert ap.stats.standoffs == n, source
+        tr.step()
+        assert "stander2" not in s.vehicle.getIDList() and tr.stats.released == 2
     finally:
         sim.teardown()
 

@@ -1025,6 +1025,31 @@ def test_a_vehicle_standing_for_no_reason_sumo_shows_is_taken_out_after_a_stando
     assert t.stats.released == 1
 
 
+def test_a_vehicle_in_a_queue_behind_the_ego_is_taken_out_after_a_standoff(traffic):
+    """A standing vehicle whose queue ahead ends at the ego (Monaco, seed 1: the car waited
+    for a car on a lane over its path, which SUMO had wait behind a car merging ahead of it,
+    which waited behind the car) is in a circle with the car: ``release_standoff`` takes it
+    out; one whose queue ends at a vehicle standing for itself is not."""
+    t = traffic(seed=2)
+    s = t.sumo
+    lane, edge = _vehicles_on_a_lane(s, 150.0, {"lead": 110.0, "held": 100.0, "next": 50.0,
+                                                "last": 40.0}, 0.0)
+    fx, fy, angle = lane_pose(s, lane, 60.0)            # the ego's rear 55.5 m in: "next" 5.5 m behind it
+    cx, cy = front_to_center(fx, fy, angle, 4.5)
+    t.add_ego([edge])
+    for _ in range(250):                                # 25 s, all held standing
+        t.set_ego_pose(cx, cy, sumo_angle_to_yaw(angle), 0.0)
+        for vid in ("next", "last", "lead", "held"):
+            s.vehicle.setSpeed(vid, 0.0)
+        t.step()
+    assert s.vehicle.getLeader("last", 10.0)[0] == "next" and s.vehicle.getLeader("next", 10.0)[0] == EGO_ID
+    assert not t.release_standoff("held", 20.0)         # behind "lead", which waits for nothing of the car's
+    assert t.release_standoff("last", 20.0)             # behind "next", which waits behind the ego
+    t.step()
+    ids = set(s.vehicle.getIDList())
+    assert "last" not in ids and {"next", "held", "lead"} <= ids
+
+
 def test_the_ego_stays_on_the_network_across_a_lane_joint_at_a_bend(traffic):
     """``moveToXY`` finds no lane for a point just past a lane's end on the outer side of a
     bend at the joint with the next lane (the perpendicular foot lies beyond the one lane's end
