@@ -1150,6 +1150,10 @@ class Autopilot:
         if sp < 0.5:
             if pos < a0:
                 return None                               # standing before it
+            if self._waits_for_ego(str(actors.ids[i])):
+                # SUMO has it wait for the car: the car goes first (its body, if in the way,
+                # is the sweep's; Kouvola, seed 1: a U-turn waiting for the car, the car for it)
+                return None
             t_in, t_out = 0.0, float("inf")
         else:
             t_in, t_out = max(a0 - pos, 0.0) / sp, (a1 - pos + L) / sp
@@ -1182,6 +1186,16 @@ class Autopilot:
                     and s_here - (self.length - self.front) + v_ego * t_in > s_join + MERGE_BEHIND_M:
                 return None
         return Lead(max(0.0, gap - LANE_CONFLICT_MARGIN_M), 0.0, "vehicle", "conflict", str(actors.ids[i]))
+
+    def _waits_for_ego(self, vid: str) -> bool:
+        """Does SUMO have vehicle `vid` wait for the ego (``SumoTraffic.waits_for_ego``)?"""
+        tr = getattr(self.sim, "traffic", None)
+        if tr is None:
+            return False
+        try:
+            return bool(tr.waits_for_ego(vid))
+        except Exception:
+            return False
 
     @staticmethod
     def _at_path_junction(tr, lane: str, junctions: set) -> bool:

@@ -609,6 +609,24 @@ class SumoTraffic(Component):
         st.max_vehicles = max(st.max_vehicles, st.vehicles)
         st.max_persons = max(st.max_persons, st.persons)
 
+    def waits_for_ego(self, vid: str, chain: int = STANDOFF_CHAIN) -> bool:
+        """Does SUMO have vehicle `vid` wait for the ego: the ego its leader within 10 m, or
+        at the head of a queue of up to `chain` standing vehicles ahead of it, each within 10 m
+        of the next?"""
+        s = self._require()
+        try:
+            lead, hops = s.vehicle.getLeader(vid, 10.0), 0
+            while lead and lead[0] and lead[1] < 10.0:
+                if lead[0] == EGO_ID:
+                    return True
+                if hops >= chain or s.vehicle.getSpeed(lead[0]) >= 0.1:
+                    return False
+                hops += 1
+                lead = s.vehicle.getLeader(lead[0], 10.0)
+        except self._exc:
+            return False
+        return False
+
     def release_standoff(self, vid: str, waited_s: float) -> bool:
         """Take vehicle `vid` out of SUMO if it has stood `waited_s` (less a second) for no
         reason SUMO shows: no red or yellow light within 30 m ahead of it, no standing vehicle
@@ -626,15 +644,11 @@ class SumoTraffic(Component):
             tls = s.vehicle.getNextTLS(vid)
             if tls and tls[0][2] < 30.0 and tls[0][3] in "rRyYu":
                 return False
-            # (a standing vehicle ahead of it is a queue, unless that one, or the one it stands
-            # behind, waits for the ego: a circle with the car)
-            lead, hops = s.vehicle.getLeader(vid, 10.0), 0
-            while lead and lead[0] and lead[0] != EGO_ID and lead[1] < 10.0 and s.vehicle.getSpeed(lead[0]) < 0.1:
-                hops += 1
-                if hops > STANDOFF_CHAIN:
-                    return False
-                lead = s.vehicle.getLeader(lead[0], 10.0)
-            if hops and not (lead and lead[0] == EGO_ID and lead[1] < 10.0):
+            # (a standing vehicle ahead of it is a queue, unless the queue ends at the ego: a
+            # circle with the car)
+            lead = s.vehicle.getLeader(vid, 10.0)
+            if lead and lead[0] and lead[0] != EGO_ID and lead[1] < 10.0 and s.vehicle.getSpeed(lead[0]) < 0.1 \
+                    and not self.waits_for_ego(vid):
                 return False
             s.vehicle.remove(vid, tc.REMOVE_VAPORIZED)
         except self._exc:

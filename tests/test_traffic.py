@@ -1028,8 +1028,9 @@ def test_a_vehicle_standing_for_no_reason_sumo_shows_is_taken_out_after_a_stando
 def test_a_vehicle_in_a_queue_behind_the_ego_is_taken_out_after_a_standoff(traffic):
     """A standing vehicle whose queue ahead ends at the ego (Monaco, seed 1: the car waited
     for a car on a lane over its path, which SUMO had wait behind a car merging ahead of it,
-    which waited behind the car) is in a circle with the car: ``release_standoff`` takes it
-    out; one whose queue ends at a vehicle standing for itself is not."""
+    which waited behind the car) waits for the ego (``waits_for_ego``), in a circle with the
+    car: ``release_standoff`` takes it out; one whose queue ends at a vehicle standing for
+    itself is not."""
     t = traffic(seed=2)
     s = t.sumo
     lane, edge = _vehicles_on_a_lane(s, 150.0, {"lead": 110.0, "held": 100.0, "next": 50.0,
@@ -1043,6 +1044,8 @@ def test_a_vehicle_in_a_queue_behind_the_ego_is_taken_out_after_a_standoff(traff
             s.vehicle.setSpeed(vid, 0.0)
         t.step()
     assert s.vehicle.getLeader("last", 10.0)[0] == "next" and s.vehicle.getLeader("next", 10.0)[0] == EGO_ID
+    assert t.waits_for_ego("next") and t.waits_for_ego("last") and not t.waits_for_ego("held")
+    assert not t.waits_for_ego("last", chain=0)         # (one standing vehicle between)
     assert not t.release_standoff("held", 20.0)         # behind "lead", which waits for nothing of the car's
     assert t.release_standoff("last", 20.0)             # behind "next", which waits behind the ego
     t.step()
