@@ -473,23 +473,8 @@ class EgoVehicle:
         level on a 9 % Monaco street, the rear of the body started 0.15 m inside the road and
         the car reared up.) Returns (z, pitch, roll); with fewer than three hits, (z_hint, 0,
         0) and the car level."""
-        cid = self.client
-        c, s = math.cos(yaw), math.sin(yaw)
-        uv = [(wx, wy) for wx, wy, _ in self.spec.wheel_positions] + [(0.0, 0.0)]
-        starts, ends = [], []
-        for u, v in uv:
-            px, py = x + c * u - s * v, y + s * u + c * v
-            starts.append((px, py, z_hint + reach))
-            ends.append((px, py, z_hint - reach))
-        hits = p.rayTestBatch(starts, ends, numThreads=1, collisionFilterMask=self._ray_mask, physicsClientId=cid)
-        rows = [(1.0, u, v, h[3][2]) for (u, v), h in zip(uv, hits) if h[0] >= 0]
-        if len(rows) < 3:
-            z, pitch, roll = z_hint, 0.0, 0.0
-        else:
-            A = np.array([r[:3] for r in rows])
-            z, b, cc = np.linalg.lstsq(A, np.array([r[3] for r in rows]), rcond=None)[0]
-            # (pitch > 0 is nose down, roll > 0 left side up: see the module doc)
-            z, pitch, roll = float(z), -math.atan(float(b)), math.atan(float(cc))
+        fit = self._ground_plane(x, y, yaw, z_hint + reach, z_hint - reach)
+        z, pitch, roll = fit if fit is not None else (z_hint, 0.0, 0.0)
         self.reset((x, y, z), yaw, pitch=pitch, roll=roll)
         return z, pitch, roll
 
@@ -502,26 +487,38 @@ class EgoVehicle:
         is more than ``min_step`` above the footprint, the car is set onto it with its speed,
         yaw rate and steering. Returns the rise (m; 0 when the car stays where it is)."""
         st = self.state()
-        c, s = math.cos(st.yaw), math.sin(st.yaw)
+        fit = self._ground_plane(st.x, st.y, st.yaw, st.z + reach, st.z - reach)
+        if fit is None:
+            return 0.0
+        z, pitch, roll = fit
+        rise = z - st.z
+        if rise <= min_step:
+            return 0.0
+        self.set_pose_velocity((st.x, st.y, z), st.yaw, speed=st.speed, yaw_rate=st.yaw_rate,
+                               pitch=pitch, roll=roll)
+        return rise
+
+    def _ground_plane(self, x: float, y: float, yaw: float, z_top: float, z_bottom: float) -> tuple | None:
+        """The surface under the car's footprint at x/y (heading ``yaw``): one ray per wheel
+        and one at the centre, from ``z_top`` down to ``z_bottom``, skipping the car itself; a
+        plane fitted to the hits gives (z under the footprint centre, pitch, roll). None with
+        fewer than three hits."""
+        c, s = math.cos(yaw), math.sin(yaw)
         uv = [(wx, wy) for wx, wy, _ in self.spec.wheel_positions] + [(0.0, 0.0)]
         starts, ends = [], []
         for u, v in uv:
-            px, py = st.x + c * u - s * v, st.y + s * u + c * v
-            starts.append((px, py, st.z + reach))
-            ends.append((px, py, st.z - reach))
+            px, py = x + c * u - s * v, y + s * u + c * v
+            starts.append((px, py, z_top))
+            ends.append((px, py, z_bottom))
         hits = p.rayTestBatch(starts, ends, numThreads=1, collisionFilterMask=self._ray_mask,
                               physicsClientId=self.client)
         rows = [(1.0, u, v, h[3][2]) for (u, v), h in zip(uv, hits) if h[0] >= 0]
         if len(rows) < 3:
-            return 0.0
+            return None
         A = np.array([r[:3] for r in rows])
         z, b, cc = np.linalg.lstsq(A, np.array([r[3] for r in rows]), rcond=None)[0]
-        rise = float(z) - st.z
-        if rise <= min_step:
-            return 0.0
-        self.set_pose_velocity((st.x, st.y, float(z)), st.yaw, speed=st.speed, yaw_rate=st.yaw_rate,
-                               pitch=-math.atan(float(b)), roll=math.atan(float(cc)))
-        return rise
+        # (pitch > 0 is nose down, roll > 0 left side up: see the module doc)
+        return float(z), -math.atan(float(b)), math.atan(float(cc))
 
     def set_pose_velocity(self, position: tuple[float, float, float], yaw: float, speed: float = 0.0,
                           yaw_rate: float = 0.0, *, pitch: float = 0.0, roll: float = 0.0,

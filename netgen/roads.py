@@ -894,7 +894,7 @@ def _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, clearance) -> None:
 def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, junctions=None,
                      max_grade: float = JUNCTION_MAX_GRADE, grade_weight: float = 40.0, tie_weight: float = 3.0,
                      ridge: float = 0.5, planes_out: dict | None = None,
-                     max_edge_grade: float = EDGE_MAX_GRADE, deck=None, pinned: dict | None = None) -> int:
+                     max_edge_grade: float = EDGE_MAX_GRADE, deck=None, pinned: dict | None = None) -> tuple:
     """Make the ends of the edges that meet at a node lie on one plane (``rz`` in place).
 
     Each edge's profile is sampled from the ground, so the roads at a junction on a hillside
@@ -1043,7 +1043,7 @@ def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, juncti
     return int(np.sum(np.abs(dz_end) > 0.01)), n_pinned
 
 
-def _onto_own_plane(edges, lanes, lane_edge, C, cg, cz, tilt, unit_left, planes, junctions,
+def _onto_own_plane(edges, lane_edge, C, cg, cz, tilt, unit_left, planes, junctions,
                     reach: float = OWN_PLANE_REACH_M, fade: float = OWN_PLANE_FADE_M) -> int:
     """A lane whose two ends lie on one plane (its edge joins two junctions drawn into each
     other, which share one plane, or loops back to its node) runs inside that junction
@@ -1056,15 +1056,14 @@ def _onto_own_plane(edges, lanes, lane_edge, C, cg, cz, tilt, unit_left, planes,
     dead at 7.9 m/s.) Returns how many points moved more than 1 cm."""
     if not len(C) or not planes or not junctions:
         return 0
-    lane_no = np.unique(cg)
-    same = [k for k in lane_no.tolist()
-            if planes.get(edges[lane_edge[k]].from_node) is not None
-            and planes.get(edges[lane_edge[k]].from_node) == planes.get(edges[lane_edge[k]].to_node)]
-    if not same:
-        return 0
     by_plane: dict = {}
-    for k in same:
-        by_plane.setdefault(planes[edges[lane_edge[k]].from_node], []).append(k)
+    for k in np.unique(cg).tolist():
+        e = edges[lane_edge[k]]
+        pl = planes.get(e.from_node)
+        if pl is not None and pl == planes.get(e.to_node):
+            by_plane.setdefault(pl, []).append(k)
+    if not by_plane:
+        return 0
     members: dict = {}
     for j, pl in planes.items():
         if pl in by_plane and j in junctions and len(junctions[j]) >= 3:
@@ -1533,8 +1532,9 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     nrm = _normals_many(C, cg) * hw[:, None]
     # each lane's ends onto its nodes' planes, across its width too: cz moves, and the lane
     # tilts across (tilt: height gained per metre to the left) near its ends
-    tilt = _ends_on_planes(edges, lanes, lane_edge, C, cg, cz, cs, ctot, nrm / hw[:, None], planes)
-    own_plane = _onto_own_plane(edges, lanes, lane_edge, C, cg, cz, tilt, nrm / hw[:, None], planes, jrings)
+    unit_left = nrm / hw[:, None]
+    tilt = _ends_on_planes(edges, lanes, lane_edge, C, cg, cz, cs, ctot, unit_left, planes)
+    own_plane = _onto_own_plane(edges, lane_edge, C, cg, cz, tilt, unit_left, planes, jrings)
     side = np.array([l.pedestrian_only for l in lanes])
     rail = np.array([bool(l.allowed) and l.allowed <= RAIL_CLASSES for l in lanes])
     drive = np.array([l.drivable for l in lanes])
