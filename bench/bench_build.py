@@ -42,7 +42,7 @@ from netgen import sumo_net  # noqa: E402
 from netgen.build import build_world, resolve_place  # noqa: E402
 from netgen.config import WorldConfig  # noqa: E402
 from netgen.frame import WorldFrame  # noqa: E402
-from netgen.osm_file import network_xml, to_osm_xml  # noqa: E402
+from netgen.osm_file import keep_edges_file, network_xml, to_osm_xml  # noqa: E402
 
 
 def places(rings):
@@ -71,7 +71,8 @@ def netconvert_alone(cfg: WorldConfig, cache: Path, out: Path, extract: bool = F
     frame = WorldFrame(centre[0], centre[1], cfg.chunk_size_m)
     bbox = frame.bbox_lonlat(frame.extent(frame.ring(cfg.chunks)), margin_m=50.0)
     osm_xml, _ = (network_xml if extract else to_osm_xml)(Path(source["file"]), cache)
-    args = sumo_net.netconvert_args(osm_xml, out, frame.proj_string, bbox)
+    args = sumo_net.netconvert_args(osm_xml, out, frame.proj_string, bbox,
+                                    keep_edges=keep_edges_file(osm_xml))      # the build's options
     t0, c0 = time.perf_counter(), _cpu()
     subprocess.run(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=sumo_net.sumo_env(), check=True)
     return time.perf_counter() - t0, _cpu() - c0

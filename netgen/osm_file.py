@@ -174,6 +174,48 @@ def _cache_entry(path: Path, cache_dir: Path, ext: str, marker_ext: str):
     return path, digest, out, marker, info
 
 
+# ---------------------------------------------------------------------------------------
+# ways netconvert must not join (``--geometry.remove``)
+# ---------------------------------------------------------------------------------------
+#: OSM ``tunnel=*`` values of roads that stay on the ground (through a building, under an
+#: avalanche roof): meshed like any road
+SURFACE_TUNNEL_VALUES = frozenset({"no", "", "building_passage", "avalanche_protector"})
+#: the tags that set a way apart from the ways it continues (a deck, a tunnel, another level)
+LEVEL_KEYS = ("bridge", "tunnel", "layer")
+
+
+def _level_way(tags) -> bool:
+    """A bridge, a tunnel (not a passage through a building) or a way on another layer."""
+    return (tags.get("bridge", "no") != "no" or tags.get("tunnel", "no") not in SURFACE_TUNNEL_VALUES
+            or tags.get("layer", "0") != "0")
+
+
+def _edge_ids(way_id: int, n_nodes: int) -> list:
+    """The ids netconvert's OSM importer may give the edges of a way: the way's id, ``#k``
+    for its k-th piece where other ways split it, ``-`` in front for the other direction."""
+    base = [str(way_id)] + [f"{way_id}#{k}" for k in range(max(n_nodes - 1, 0))]
+    return base + ["-" + i for i in base]
+
+
+def keep_edges_file(osm_xml: Path) -> Path:
+    """The list of edges netconvert is to keep whole (``--geometry.remove.keep-edges.input-file``)
+    for an OSM file converted into the cache: written beside it, before its marker."""
+    return Path(str(osm_xml) + ".keep")
+
+
+def _write_keep(ways, out: Path) -> int:
+    """Write the edge ids of `ways` ((id, node count) of the bridges, tunnels and ways on other
+    layers) to `out`, atomically. netconvert's ``--geometry.remove`` joins a way with the ways
+    it continues into one edge that keeps the tags of one of them: Portland's Stadium Freeway,
+    three ways (one a bridge, layer 1) became one 573 m deck, level with the Sheridan Street
+    bridge that crosses it; a tunnel joined with the street it leads into left the street
+    unmeshed or the tunnel meshed. Each world had 29-279 such edges."""
+    from ._atomic import write_text
+
+    write_text(out, "".join(i + "\n" for wid, n in ways for i in _edge_ids(wid, n)))
+    return len(ways)
+
+
 def to_osm_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
     """Check `path` and return (OSM XML file netconvert can read, info with the sha256).
 
@@ -184,8 +226,8 @@ def to_osm_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
 
     from ._atomic import write_text
 
-    path, digest, out, marker, info = _cache_entry(path, cache_dir, ".osm", ".scan")
-    if info is not None:
+    path, digest, out, marker, info = _cache_entry(path, cache_dir, ".osm", ".scan2")
+    if info is not None and keep_edges_file(out).exists():
         return out, info
     with atomic_path(out) as tmp:
         w = osmium.SimpleWriter(osmium.io.File(str(tmp), "osm"), overwrite=True)
@@ -201,6 +243,9 @@ def to_osm_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
         if counts["ways"] == 0:
             nodes = scan(path)["nodes"]      # only to word the error
             raise DataError(f"OSM file {path.name} has no map data ({nodes} nodes, 0 ways)")
+        keep = [(w.id, len(w.nodes)) for w in osmium.FileProcessor(osmium.io.File(str(tmp), "osm"), osmium.osm.WAY)
+                .with_filter(osmium.filter.KeyFilter(*LEVEL_KEYS)) if _level_way(w.tags)]
+    counts["level_ways"] = _write_keep(keep, keep_edges_file(out))
     info = {**counts, "sha256": digest}
     write_text(marker, json.dumps(info))
     return out, info
@@ -241,8 +286,8 @@ def network_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
 
     from ._atomic import write_text
 
-    path, digest, out, marker, info = _cache_entry(path, cache_dir, ".network.osm", ".network.json")
-    if info is not None:
+    path, digest, out, marker, info = _cache_entry(path, cache_dir, ".network.osm", ".network2.json")
+    if info is not None and keep_edges_file(out).exists():
         return out, info
     with atomic_path(out) as tmp:
         try:
@@ -253,6 +298,7 @@ def network_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
             raise _corrupt(path, e) from None
         if counts["network_ways"] == 0:
             scan(path)          # no map data at all: its error; else netconvert says "no roads"
+    counts["level_ways"] = _write_keep(counts.pop("level"), keep_edges_file(out))
     info = {**counts, "sha256": digest}
     write_text(marker, json.dumps(info))
     return out, info
@@ -265,11 +311,13 @@ def _write_network(src: Path, out: Path) -> dict:
     src = str(src)
     ways = osmium.filter.KeyFilter(*NETWORK_WAY_KEYS).enable_for(osmium.osm.WAY)
     types = osmium.filter.TagFilter(*(("type", t) for t in NETWORK_RELATION_TYPES)).enable_for(osmium.osm.RELATION)
-    way_ids, node_ids, rels = set(), set(), []
+    way_ids, node_ids, rels, level = set(), set(), [], []
     for o in osmium.FileProcessor(src, osmium.osm.WAY | osmium.osm.RELATION).with_filter(ways).with_filter(types):
         if o.is_way():
             way_ids.add(o.id)
             node_ids.update(n.ref for n in o.nodes)
+            if _level_way(o.tags):
+                level.append((o.id, len(o.nodes)))
         else:               # (after the ways: an OSM file has nodes, then ways, then relations)
             members = [(m.type, m.ref, m.role) for m in o.members
                        if (m.ref in way_ids if m.type == "w" else m.type == "n")]
@@ -285,4 +333,5 @@ def _write_network(src: Path, out: Path) -> dict:
             writer.add_relation(r)
     finally:
         writer.close()
-    return {"network_ways": len(way_ids), "network_nodes": len(node_ids), "network_relations": len(rels)}
+    return {"network_ways": len(way_ids), "network_nodes": len(node_ids), "network_relations": len(rels),
+            "level": level}

@@ -28,6 +28,8 @@ from pathlib import Path
 import numpy as np
 from sumolib.net.lane import get_allowed
 
+from .osm_file import SURFACE_TUNNEL_VALUES
+
 try:
     from lxml import etree as _etree
     _LXML = True
@@ -41,9 +43,6 @@ except ImportError:  # pragma: no cover - lxml is a dependency; ElementTree is t
     def _children(el, tag):
         return el.iterfind(tag)
 
-#: OSM ``tunnel=*`` values of roads that stay on the ground (through a building, under an
-#: avalanche roof): meshed like any road
-SURFACE_TUNNEL_VALUES = frozenset({"no", "", "building_passage", "avalanche_protector"})
 CAR_CLASSES = {"passenger", "private", "taxi", "bus", "truck", "delivery", "emergency", "evehicle"}
 
 

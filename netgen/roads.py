@@ -89,7 +89,7 @@ END_FADE_M = 10.0
 CONFORM_FADE_M = 15.0
 CONFORM_BELOW_M = 0.02
 SOFT_STEP_M = 0.15               # (a path drawn into a vehicle lane, this far off its height: left out there)
-CONFORM_MAX_M = 1.6             # (further apart than this somewhere: a bridge over a road, both kept)
+CONFORM_MAX_M = 2.5             # (further apart than this somewhere: a bridge over a road, both kept)
 CONFORM_NODE_CLEAR_M = 15.0    # roads meeting at a node conform only this far beyond its junction
 CONFORM_MIN_OVERLAP_M = 1.0     # (of the cross-section inside the other road's lane: a sliver
                                 # where two roads' lanes graze near a junction does not count)
@@ -108,6 +108,9 @@ DECK_CLEARANCE_M = 5.0
 DECK_THICKNESS_M = 0.4          # (its underside, drawn only)
 DECK_GRADE = 0.06
 DECK_MAX_GRADE = 0.08
+#: how far a deck that cannot rise over a road within its own length may rise on its approaches
+#: (roads it runs on into without a junction), either side (m)
+DECK_APPROACH_M = 150.0
 #: how far a sidewalk may reach into a vehicle lane of another road before that piece of it is
 #: left out (m)
 SIDEWALK_INTRUSION_M = 0.3
@@ -862,33 +865,98 @@ def _bridge_decks(edges, ref_e, rg, rs, rtot, rz, deck) -> None:
     rz[pd] = (z0 + u * (z1 - z0))[pd]
 
 
-def _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, clearance) -> None:
+def _approaches(edges, ref_e, rtot, reach: float = DECK_APPROACH_M):
+    """For :func:`_raise_decks`: ``chain(g)``, the profiles a deck's profile `g` runs on into
+    without a junction (through nodes where only its street and one other meet, "X" and "-X"
+    being one street), up to ``reach`` m either side: (profiles before it, in order; after it)."""
+    n = len(ref_e)
+    num = {edges[int(e)].id: k for k, e in enumerate(ref_e)}
+    fn = [edges[int(e)].from_node for e in ref_e]
+    tn = [edges[int(e)].to_node for e in ref_e]
+    street = []
+    for e in ref_e:
+        eid = edges[int(e)].id
+        o = num.get(eid[1:] if eid.startswith("-") else "-" + eid)
+        street.append(min(num[eid], o) if o is not None else num[eid])
+    streets: dict = {}
+    out_of: dict = {}
+    into: dict = {}
+    for k in range(n):
+        for v in (fn[k], tn[k]):
+            streets.setdefault(v, set()).add(street[k])
+        out_of.setdefault(fn[k], []).append(k)
+        into.setdefault(tn[k], []).append(k)
+
+    def walk(g, forward: bool):
+        got, length, cur = [], 0.0, g
+        while length < reach and len(got) < 20:
+            v = tn[cur] if forward else fn[cur]
+            if len(streets.get(v, ())) != 2:
+                break
+            nxt = [k for k in (out_of if forward else into).get(v, []) if street[k] != street[cur]]
+            if len(nxt) != 1 or nxt[0] == g or nxt[0] in got:
+                break
+            cur = nxt[0]
+            got.append(cur)
+            length += float(rtot[cur])
+        return got
+
+    return lambda g: (walk(g, False)[::-1], walk(g, True))
+
+
+def _raise_decks(edges, ref_e, rg, rs, rtot, rz, deck, edge_deck, clearance) -> dict:
     """Lowest OSM layer first, where a road passes under a deck (:func:`_bridge_decks`;
     ``clearance(points, their edges, under-edge mask)``: the heights needed there,
     :func:`_deck_clearance`; a deck of a lower layer counts as a road), the deck rises to clear
     it at :data:`DECK_GRADE` (``rz`` in place) where it can: its ends stay, and from them it
-    rises at :data:`DECK_MAX_GRADE` at most (a short bridge over a road stays at its ends'
-    height, and the road under it crosses it there, conformed to it as an untagged bridge is:
-    reaching the clearance would take approaches OSM does not tag as the bridge). After the
-    junction planes, so that the roads under it have their heights. ``deck``: per profile,
-    ``edge_deck``: per edge."""
+    rises at :data:`DECK_MAX_GRADE` at most. A bridge too short for that rises on its
+    approaches too (the roads it runs on into without a junction, up to
+    :data:`DECK_APPROACH_M` either side: :func:`_approaches`), their far ends staying: OSM tags
+    only the bridge itself, and the ground model does not have the embankments (Kouvola's
+    bridges over motorway 7/15; until netconvert was kept from joining a bridge with the ways
+    it continues, their joined edge was the deck). Where even that cannot reach the clearance,
+    the deck stays, and the road under it crosses it at its height, conformed to it as an
+    untagged bridge is. After the junction planes, so that the roads under it have their
+    heights. ``deck``: per profile, ``edge_deck``: per edge. Returns the nodes inside a raised
+    chain and how far their roads' ends rose (their planes are to follow)."""
     pd = deck[rg]
     layer_e = np.array([e.layer for e in edges], dtype=np.int64)
     layer = layer_e[ref_e]
+    chain_of = None
+    risen: dict = {}
+
+    def pts(k):
+        return np.arange(np.searchsorted(rg, k), np.searchsorted(rg, k, side="right"))
+
     for L in np.unique(layer[deck]):
         idx = np.flatnonzero(pd & (layer[rg] == L))
         need = clearance(idx, ref_e[rg[idx]], ~edge_deck | (layer_e < L))
-        for g in np.unique(rg[idx[np.isfinite(need)]]):
-            i = np.arange(np.searchsorted(rg, g), np.searchsorted(rg, g, side="right"))     # (its points)
-            # (from its ends, which stay, at DECK_MAX_GRADE at most: where a deck cannot rise
-            # enough over every road under it, it stays, and they cross at its height, conformed)
-            cap = np.minimum(rz[i[0]] + DECK_MAX_GRADE * rs[i], rz[i[-1]] + DECK_MAX_GRADE * (rs[i[-1]] - rs[i]))
+        for g in np.unique(rg[idx[np.isfinite(need)]]).tolist():
             c = (rg[idx] == g) & np.isfinite(need)
-            nc, sc = need[c], rs[idx[c]]
-            if np.any(nc > np.interp(sc, rs[i], cap) + 1e-6):
-                continue        # (partly raised, it would stand lower than a car over a road)
-            env = np.max(nc[None, :] - DECK_GRADE * np.abs(rs[i][:, None] - sc[None, :]), axis=1)
-            rz[i] = np.maximum(rz[i], np.minimum(env, cap))
+            nc = need[c]
+            if chain_of is None:
+                chain_of = _approaches(edges, ref_e, rtot)
+            for before, after in (([], []), chain_of(g)):     # on its own first, then with its approaches
+                seq = list(before) + [g] + list(after)
+                parts = [pts(k) for k in seq]
+                off = np.cumsum([0.0] + [float(rtot[k]) for k in seq[:-1]])
+                i = np.concatenate(parts)
+                S = np.concatenate([rs[q] + o for q, o in zip(parts, off)])
+                sc = rs[idx[c]] + off[len(before)]
+                # (from the chain's ends, which stay, at DECK_MAX_GRADE at most: where a deck cannot
+                # rise enough over every road under it, it stays, and they cross at its height)
+                cap = np.minimum(rz[i[0]] + DECK_MAX_GRADE * S, rz[i[-1]] + DECK_MAX_GRADE * (S[-1] - S))
+                if np.any(nc > np.interp(sc, S, cap) + 1e-6):
+                    continue    # (partly raised, it would stand lower than a car over a road)
+                env = np.max(nc[None, :] - DECK_GRADE * np.abs(S[:, None] - sc[None, :]), axis=1)
+                new = np.maximum(rz[i], np.minimum(env, cap))
+                first = np.cumsum([0] + [len(q) for q in parts[:-1]])
+                for k, f in zip(seq[1:], first[1:]):             # (the nodes inside the chain)
+                    node = edges[int(ref_e[k])].from_node
+                    risen[node] = max(risen.get(node, 0.0), float(new[f] - rz[i[f]]))
+                rz[i] = new
+                break
+    return risen
 
 
 def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, junctions=None,
@@ -1363,7 +1431,7 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins:
 
 def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_edge, halfw, onto,
                              lower_only: bool = False, only=None, fade: float = CONFORM_FADE_M,
-                             cache: dict | None = None, twins: bool = False) -> int:
+                             cache: dict | None = None, twins: bool = False, tilt=None, unit_left=None) -> int:
     """Heights ``z`` (in place) of the points `P` (lines `g`, arc length `s`) of roads that
     overlap a higher-ranked road without meeting it at a node (or far from the node where they
     meet: :data:`CONFORM_NODE_CLEAR_M`): where a point's cross-section
@@ -1375,7 +1443,11 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     overlap which roads for another call on the same points; ``twins`` (the edges' profiles,
     before the junction planes) conforms twin roads too (:data:`CONFORM_TWIN_MIN_OVERLAP_M`,
     up to their nodes). Two roads that are more than :data:`CONFORM_MAX_M` apart in height anywhere they overlap are a bridge and
-    the road under it: neither moves.
+    the road under it: neither moves. Given ``tilt`` and ``unit_left`` (lane points: their
+    height gained per metre to the left, and that direction), a moved point also takes the
+    other road's slope across its lane, fading as its height does: where a street crosses a
+    short ramp of a bridge that cannot rise over it (Monaco: Avenue de la Costa's, 23 %), it
+    lay level across the ramp, its side 0.16 m over it.
 
     Roads that cross without a junction are a bridge or tunnel that OSM does not tag (a
     service road in Monaco's old railway tunnel under Boulevard Princesse Charlotte), or a
@@ -1397,7 +1469,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
         return 0
     tz = onto(P[pi], veh[vi], B)
     fin = np.isfinite(tz)
-    pi, B, tz = pi[fin], B[fin], tz[fin] - CONFORM_BELOW_M
+    pi, vi, B, tz = pi[fin], vi[fin], B[fin], tz[fin] - CONFORM_BELOW_M
     # two roads further apart in height than a car is tall are a bridge and the road under it
     # (a car on the lower one passes under the other): both stay
     pair = own_edge[pi] * len(edges) + B
@@ -1405,7 +1477,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     apart = np.zeros(inv.max() + 1 if len(inv) else 0)
     np.maximum.at(apart, inv, np.abs(tz - z[pi]))
     keep = apart[inv] <= CONFORM_MAX_M
-    pi, tz = pi[keep], tz[keep]
+    pi, vi, B, tz = pi[keep], vi[keep], B[keep], tz[keep]
     n = len(P)
     delta = np.zeros(n)             # (the move, not the height, fades: the road keeps its grade)
     delta[pi] = tz - z[pi]
@@ -1413,9 +1485,26 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
         delta = np.minimum(delta, 0.0)
     on = np.zeros(n, dtype=bool)
     on[pi[delta[pi] != 0.0]] = True
-    if not on.any():
-        return 0
-    # each point: the nearest moved point of its own line, along it
+    w, near = _fade_weights(on, g, s, fade)
+    moved = w > 0.0
+    z[moved] += w[moved] * delta[near[moved]]
+    if tilt is not None and unit_left is not None and len(pi):
+        # every overlapping point (moved or already under) takes the other road's slope across
+        # its lane (its height half a metre either side), fading likewise
+        step = 0.5 * unit_left[pi]
+        across = np.full(n, np.nan)
+        across[pi] = onto(P[pi] + step, veh[vi], B) - onto(P[pi] - step, veh[vi], B)
+        ov = np.isfinite(across)
+        wt, nt = _fade_weights(ov, g, s, fade)
+        mi = np.flatnonzero(wt > 0.0)
+        tilt[mi] += wt[mi] * (across[nt[mi]] - tilt[mi])
+    return int(moved.sum())
+
+
+def _fade_weights(on, g, s, fade: float):
+    """For each point of the lines `g` (arc length `s`): the nearest point of its own line in
+    the mask `on`, along it, and a weight falling from 1 there to 0 at ``fade`` m from it."""
+    n = len(on)
     idx = np.arange(n)
     prev = np.maximum.accumulate(np.where(on, idx, -1))
     nxt = np.minimum.accumulate(np.where(on, idx, n)[::-1])[::-1]
@@ -1423,10 +1512,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     dprev = np.where((prev >= 0) & (g[pv] == g), s - s[pv], np.inf)
     dnext = np.where((nxt < n) & (g[nx] == g), s[nx] - s, np.inf)
     near = np.where(dprev <= dnext, pv, nx)
-    w = np.clip(1.0 - np.minimum(dprev, dnext) / fade, 0.0, 1.0)
-    moved = w > 0.0
-    z[moved] += w[moved] * delta[near[moved]]
-    return int(moved.sum())
+    return np.clip(1.0 - np.minimum(dprev, dnext) / fade, 0.0, 1.0), near
 
 
 def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | None = None) -> RoadGeometry:
@@ -1485,8 +1571,12 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
 
     conformed = conform()
     if deck.any():
-        _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, lambda idx, own_e, under_e: _deck_clearance(
+        risen = _raise_decks(edges, ref_e, rg, rs, rtot, rz, deck, edge_deck, lambda idx, own_e, under_e: _deck_clearance(
             RP, idx, own_e, edge_hw[own_e], under_e, higher, lane_edge, onto_profile))
+        for node, dz in risen.items():      # (a node inside a raised chain: its plane rose with it)
+            if node in planes and dz > 0.0:
+                x0, y0, z0, gx, gy = planes[node]
+                planes[node] = (x0, y0, z0 + dz, gx, gy)
 
     # 2. lane centrelines, resampled, with heights from their edge's profile
     LP, lg = _concat([l.shape for l in lanes])
@@ -1543,7 +1633,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     # stood 0.3 m through it)
     conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, lane_edge[cg], hw,
                                           lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0],
-                                          lower_only=True, only=drive[cg])
+                                          lower_only=True, only=drive[cg], tilt=tilt, unit_left=unit_left)
     # the pieces of sidewalks, footways, paths and cycleways (lanes no car uses) that lie on
     # another road's carriageway are left out, and do not hold the ground up either (a
     # footbridge over Avenue du Port, kept on the ground, stood 0.7-1.5 m above the road

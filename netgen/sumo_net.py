@@ -41,10 +41,11 @@ def sumo_env() -> dict:
     return env
 
 
-NETCONVERT_VERSION_TAG = "netconvert-opts-v5"
+NETCONVERT_VERSION_TAG = "netconvert-opts-v6"
 
 
-def netconvert_args(osm_xml: Path, out_net: Path, proj: str, geo_boundary=None, tls_join: bool = False) -> list[str]:
+def netconvert_args(osm_xml: Path, out_net: Path, proj: str, geo_boundary=None, tls_join: bool = False,
+                    keep_edges: Path | None = None) -> list[str]:
     """netconvert's command line.
 
     ``--tls.join`` is off by default: on central Helsinki it merges up to 15 nearby signals
@@ -65,6 +66,10 @@ def netconvert_args(osm_xml: Path, out_net: Path, proj: str, geo_boundary=None, 
     does not mesh tunnels). ``highway=raceway`` is left out: Monaco's Grand Prix circuit is
     mapped as a second way over the public streets it borrows, and as its own 2.7 km edge it
     laid a second road surface over them, at other heights, with SUMO traffic on it.
+
+    ``keep_edges``: a file of edge ids ``--geometry.remove`` is to leave whole (the bridges,
+    tunnels and ways on other layers: :func:`netgen.osm_file.keep_edges_file`), so that an
+    edge is all deck, all tunnel or all ground.
     """
     tm = sumo_home() / "data" / "typemap"
     args = [
@@ -86,6 +91,8 @@ def netconvert_args(osm_xml: Path, out_net: Path, proj: str, geo_boundary=None, 
         "--no-warnings", "false", "--aggregate-warnings", "5",
         "-o", str(out_net),
     ]
+    if keep_edges is not None:
+        args[-2:-2] = ["--geometry.remove.keep-edges.input-file", str(keep_edges)]
     if geo_boundary is not None:
         s, w, n, e = geo_boundary
         args += ["--keep-edges.in-geo-boundary", f"{w:.7f},{s:.7f},{e:.7f},{n:.7f}"]
@@ -126,7 +133,10 @@ def start_netconvert(osm_xml: Path, out_net: Path, proj: str, geo_boundary=None,
     """Start netconvert in the background (the caller works on other layers meanwhile)."""
     out_net.parent.mkdir(parents=True, exist_ok=True)
     errf = open(log or (out_net.parent / "netconvert.log"), "w+")
-    args = netconvert_args(osm_xml, out_net, proj, geo_boundary)
+    from .osm_file import keep_edges_file
+
+    keep = keep_edges_file(osm_xml)
+    args = netconvert_args(osm_xml, out_net, proj, geo_boundary, keep_edges=keep if keep.exists() else None)
     try:
         proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=errf, env=sumo_env())
     except OSError as e:

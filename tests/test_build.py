@@ -126,12 +126,14 @@ def test_road_lengths_match_geodesic_osm_lengths(helsinki):
             g = _edge_geometry(net, e)
             fj, tj = net.junctions[e.from_node], net.junctions[e.to_node]
             # netconvert may shift a whole edge sideways off its nodes (one-way roads with a
-            # guessed sidewalk on one side): a parallel offset d of a polyline that turns by
-            # an angle T in all changes its length by at most d * T
+            # guessed sidewalk on one side): a mitred parallel offset d of a polyline changes
+            # its length by at most d * sum(2 tan(t / 2)) over its turns t (d * T on gentle
+            # bends; Helsinki's tunnel hairpin 27572905, 38.5 m, turns 169 degrees at its middle
+            # node: its edge, 1 m off, is 59.2 m)
             shift = max(shift, float(np.hypot(g[0, 0] - fj.x, g[0, 1] - fj.y)),
                         float(np.hypot(g[-1, 0] - tj.x, g[-1, 1] - tj.y)))
             h = np.arctan2(*np.diff(g, axis=0).T[::-1])
-            turn += float(np.abs(np.angle(np.exp(1j * np.diff(h)))).sum())
+            turn += float(np.sum(2.0 * np.tan(np.minimum(np.abs(np.angle(np.exp(1j * np.diff(h)))), 3.1) / 2.0)))
             length += float(np.sum(np.hypot(*np.diff(g, axis=0).T)))
             cur = e.to_node
             hops += 1
@@ -405,6 +407,7 @@ def test_monaco_with_srtm(tmp_path):
     _check_junctions_meet_each_other(out, w)
     _check_turns_have_road(out, w)
     _check_tunnels_not_meshed(out, w)
+    assert _check_edges_on_one_level(out, w, osm) > 100
     _check_lanes_not_steeper_than_streets(out, w)
     _check_no_path_slab_over_vehicle_lanes(out, w)
     assert _check_no_holes_where_lanes_meet_junctions(out, w) > 100000
@@ -542,6 +545,36 @@ def test_limit_grade_is_the_mean_of_the_envelopes():
     z[40:] -= 12.0                                      # a 12 m cliff: a 25 % ramp across it
     out = _limit_grade(z, s, gid, G)
     assert np.max(np.abs(np.diff(out)) / 2.5) <= G + 1e-9 and abs(out[0] - z[0]) < 1e-9 and abs(out[-1] - z[-1]) < 1e-9
+
+
+def _check_edges_on_one_level(out: Path, w: dict, pbf: Path) -> int:
+    """No edge joins OSM ways of different levels (bridge, tunnel, layer): netconvert's
+    ``--geometry.remove`` joined Portland's Stadium Freeway, two ground ways and a bridge at
+    layer 1, into one 573 m deck level with the Sheridan Street bridge over it (279 such edges
+    in Portland's network; a passage through a building is on the ground). Returns how many
+    edges join several ways."""
+    from lxml import etree
+
+    from netgen.osm_file import SURFACE_TUNNEL_VALUES
+
+    levels = {}
+    for o in osmium.FileProcessor(str(pbf), osmium.osm.WAY).with_filter(osmium.filter.KeyFilter("highway")):
+        t = o.tags
+        levels[o.id] = (t.get("bridge", "no") != "no", t.get("tunnel", "no") not in SURFACE_TUNNEL_VALUES,
+                        t.get("layer", "0"))
+    joined, mixed = 0, []
+    for _, el in etree.iterparse(str(out / w["net_file"]), tag="edge"):
+        if el.get("function") is None:
+            orig = {p.get("value") for ln in el.iterchildren("lane") for p in ln.iterchildren("param")
+                    if p.get("key") == "origId"}
+            ways = {int(i.split("#")[0].lstrip("-")) for v in orig for i in v.split()}
+            if len(ways) > 1:
+                joined += 1
+                if len({levels.get(i) for i in ways}) > 1:
+                    mixed.append((el.get("id"), sorted(ways)))
+        el.clear()
+    assert not mixed, mixed[:5]
+    return joined
 
 
 def _check_tunnels_not_meshed(out: Path, w: dict):
@@ -828,7 +861,10 @@ def _check_lower_roads_under_higher_ones(out: Path, w: dict) -> int:
     layer, netconvert priority, vehicle lanes, width, id) lies under the other's vehicle lanes,
     more than 0.6 m in from their sides: each road followed its own patch of ground, and the
     service road in Monaco's old railway tunnel stood 0.3 m through Boulevard Princesse
-    Charlotte, where a car drove into it. Returns how many faces were checked."""
+    Charlotte, where a car drove into it. Up to 8 cm over: a face between a lane point taken
+    under the other road and the next point, 4.3 m on (this test's world samples lanes every
+    5 m), is straight while the ramp it crosses drops 22 % (Avenue de la Costa's bridge over
+    Boulevard du Larvotto: 6 cm). Returns how many faces were checked."""
     import shapely
     import trimesh
 
@@ -872,7 +908,7 @@ def _check_lower_roads_under_higher_ones(out: Path, w: dict) -> int:
             if len(hit):
                 checked += 1
                 dz = P[p, 2] - hit[:, 2].max()
-                if dz > 0.05:
+                if dz > 0.08:
                     above.append((lane_id, ln.id, round(float(dz), 2)))
     assert checked > 10
     assert not above, (len(above), sorted(above, key=lambda a: -a[2])[:5])
@@ -1238,6 +1274,7 @@ def test_portland_with_geotiff_and_voids(tmp_path):
     w = _dem_world(tmp_path / "a", osm, dem, (45.5152, -122.6784), spacing=2.5)   # NED is 10 m itself
     _check_terrain_against_dem(tmp_path / "a" / "w", w, dem, np.random.default_rng(3))
     _check_bridge_decks(tmp_path / "a" / "w", w, dem)
+    assert _check_edges_on_one_level(tmp_path / "a" / "w", w, osm) > 20
     nodata = shared_file("dem/portland-ned-nodata.tif")
     w2 = build_world(WorldConfig(osm=str(osm), dem=[str(nodata)], center=(45.5152, -122.6784), chunks=0,
                                  terrain_spacing_m=10.0, out=str(tmp_path / "b"), cache_dir=str(tmp_path / "cache")))
