@@ -111,6 +111,9 @@ DECK_MAX_GRADE = 0.08
 #: how far a deck that cannot rise over a road within its own length may rise on its approaches
 #: (roads it runs on into without a junction), either side (m)
 DECK_APPROACH_M = 150.0
+#: a deck brought down to a road it cannot clear keeps its ends, and leaves its line at this
+#: grade at most from them
+DECK_LOWER_GRADE = 0.1
 #: how far a sidewalk may reach into a vehicle lane of another road before that piece of it is
 #: left out (m)
 SIDEWALK_INTRUSION_M = 0.3
@@ -915,15 +918,20 @@ def _raise_decks(edges, ref_e, rg, rs, rtot, rz, deck, edge_deck, clearance) -> 
     only the bridge itself, and the ground model does not have the embankments (Kouvola's
     bridges over motorway 7/15; until netconvert was kept from joining a bridge with the ways
     it continues, their joined edge was the deck). Where even that cannot reach the clearance,
-    the deck stays, and the road under it crosses it at its height, conformed to it as an
-    untagged bridge is. After the junction planes, so that the roads under it have their
+    the deck comes down to the road where it stands less than :data:`CONFORM_MAX_M` over it
+    (the road keeps its heights: roads are not conformed to decks), and they cross at one
+    height. After the junction planes, so that the roads under it have their
     heights. ``deck``: per profile, ``edge_deck``: per edge. Returns the nodes inside a raised
-    chain and how far their roads' ends rose (their planes are to follow)."""
+    chain and how far their roads' ends rose (their planes are to follow), and how many decks
+    came down to a road."""
     pd = deck[rg]
     layer_e = np.array([e.layer for e in edges], dtype=np.int64)
     layer = layer_e[ref_e]
     chain_of = None
     risen: dict = {}
+    lowered: set = set()
+    cleared: set = set()
+    tried_g: set = set()
 
     def pts(k):
         return np.arange(np.searchsorted(rg, k), np.searchsorted(rg, k, side="right"))
@@ -934,6 +942,7 @@ def _raise_decks(edges, ref_e, rg, rs, rtot, rz, deck, edge_deck, clearance) -> 
         for g in np.unique(rg[idx[np.isfinite(need)]]).tolist():
             c = (rg[idx] == g) & np.isfinite(need)
             nc = need[c]
+            tried_g.add(g)
             if chain_of is None:
                 chain_of = _approaches(edges, ref_e, rtot)
             for before, after in (([], []), chain_of(g)):     # on its own first, then with its approaches
@@ -955,8 +964,36 @@ def _raise_decks(edges, ref_e, rg, rs, rtot, rz, deck, edge_deck, clearance) -> 
                     node = edges[int(ref_e[k])].from_node
                     risen[node] = max(risen.get(node, 0.0), float(new[f] - rz[i[f]]))
                 rz[i] = new
+                cleared.add(g)
                 break
-    return risen
+            else:
+                # it cannot clear: where it stands less than CONFORM_MAX_M over the road (a car
+                # would not pass under it), it comes down to the road, 2 cm over it, fading
+                # back to its own line over CONFORM_FADE_M, its ends staying (the road keeps
+                # its own heights, which its junctions share: Portland, the I-405 ramp bridge
+                # 27593301 left 0.5 m over 5518549 beside junction 40478018, and the road taken
+                # up to it, stood 0.27 m over the junction's edge, which a car drove into)
+                at = idx[c]
+                road = nc - DECK_CLEARANCE_M + CONFORM_BELOW_M
+                low = rz[at] - road < CONFORM_MAX_M
+                if not low.any():
+                    continue
+                i = pts(g)
+                on = np.zeros(len(i), dtype=bool)
+                on[at[low] - i[0]] = True
+                delta = np.zeros(len(i))
+                delta[at[low] - i[0]] = road[low] - rz[at[low]]
+                # (from its ends, which stay, at DECK_LOWER_GRADE off its line at most: else it
+                # stays as it is)
+                cap = DECK_LOWER_GRADE * np.minimum(rs[i] - rs[i[0]], rs[i[-1]] - rs[i])
+                if np.any(np.abs(delta[on]) > cap[on] + 1e-6):
+                    continue
+                w, near = _fade_weights(on, np.zeros(len(i), dtype=np.int64), rs[i], CONFORM_FADE_M)
+                rz[i] += np.clip(w * delta[near], -cap, cap)
+                lowered.add(g)
+    stay = np.zeros(len(edges), dtype=bool)
+    stay[ref_e[sorted(tried_g - lowered - cleared)]] = True
+    return risen, len(lowered), stay
 
 
 def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, junctions=None,
@@ -1384,12 +1421,16 @@ def _box_pairs(bmin, bmax, boxes, cell: float = 25.0):
     return i[ok], j[ok]
 
 
-def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins: bool = False):
+def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins: bool = False,
+                     decks=None, targets=None):
     """For :func:`_conform_to_higher_roads`: the points (numbers) whose cross-section runs far
     enough inside a vehicle lane of a higher-ranked road that their road does not meet at a
     node, with that lane (number among the vehicle lanes) and its edge: the highest-ranked
-    one per point. With ``twins``, twin roads (:data:`CONFORM_TWIN_MIN_OVERLAP_M`) count too."""
-    veh, cores, rank, fn, tn, core_box, nxy, nrad, _, opp = higher
+    one per point. With ``twins``, twin roads (:data:`CONFORM_TWIN_MIN_OVERLAP_M`) count too.
+    ``decks`` (a mask of edges; None: all) are the bridges' decks a road that is none may be
+    taken to (:func:`_raise_decks`: a deck clears a road, or comes down to it, or neither);
+    ``targets`` (a mask of edges), if given, the only roads looked at."""
+    veh, cores, rank, fn, tn, core_box, nxy, nrad, edge_deck, opp = higher
     none = np.zeros(0, np.int64)
     sel = np.arange(len(P)) if only is None else np.flatnonzero(only)
     if not len(sel):
@@ -1403,6 +1444,10 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins:
     # CONFORM_NODE_CLEAR_M more), where two one-way streets between the same two nodes run
     # over each other (Lauf: 0.1-0.2 m apart in height at a bend, a step the car ran into)
     ok = rank[B] > rank[A]
+    if decks is not None:
+        ok &= ~edge_deck[B] | edge_deck[A] | decks[B]
+    if targets is not None:
+        ok &= targets[B]
     Q = P[sel[qi]]
     # (a street's two directions share one profile already: no twins)
     twin = (((fn[A] == fn[B]) & (tn[A] == tn[B])) | ((fn[A] == tn[B]) & (tn[A] == fn[B]))) & twins & (opp[A] != B)
@@ -1431,7 +1476,8 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins:
 
 def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_edge, halfw, onto,
                              lower_only: bool = False, only=None, fade: float = CONFORM_FADE_M,
-                             cache: dict | None = None, twins: bool = False, tilt=None, unit_left=None) -> int:
+                             cache: dict | None = None, twins: bool = False, tilt=None, unit_left=None,
+                             decks=None, targets=None) -> int:
     """Heights ``z`` (in place) of the points `P` (lines `g`, arc length `s`) of roads that
     overlap a higher-ranked road without meeting it at a node (or far from the node where they
     meet: :data:`CONFORM_NODE_CLEAR_M`): where a point's cross-section
@@ -1462,7 +1508,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     if cache is not None and "pairs" in cache:
         pi, vi, B = cache["pairs"]
     else:
-        pi, vi, B = _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only, twins)
+        pi, vi, B = _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only, twins, decks, targets)
         if cache is not None:
             cache["pairs"] = (pi, vi, B)
     if not len(pi):
@@ -1562,7 +1608,8 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     overlaps: dict = {}
     conform = lambda: _conform_to_higher_roads(edges, lanes, lane_edge, higher, RP, rg, rs, rz,   # noqa: E731
                                                ref_e[rg], edge_hw[ref_e[rg]], onto_profile,
-                                               only=vehicle_edge[ref_e[rg]], cache=overlaps, twins=True)
+                                               only=vehicle_edge[ref_e[rg]], cache=overlaps, twins=True,
+                                               decks=np.zeros(len(edges), dtype=bool))
     conform()
     planes: dict = {}
     ends_moved, n_pinned = _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=edge_hw[ref_e],
@@ -1570,9 +1617,19 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     geo.planes = planes
 
     conformed = conform()
+    deck_stats = {"decks_down_to_roads": 0, "deck_approach_nodes_raised": 0}
     if deck.any():
-        risen = _raise_decks(edges, ref_e, rg, rs, rtot, rz, deck, edge_deck, lambda idx, own_e, under_e: _deck_clearance(
+        risen, deck_stats["decks_down_to_roads"], stay = _raise_decks(
+            edges, ref_e, rg, rs, rtot, rz, deck, edge_deck, lambda idx, own_e, under_e: _deck_clearance(
             RP, idx, own_e, edge_hw[own_e], under_e, higher, lane_edge, onto_profile))
+        deck_stats["deck_approach_nodes_raised"] = sum(dz > 0.0 for dz in risen.values())
+        if stay.any():
+            # a deck that neither clears a road nor could come down to it: the road is taken
+            # to it, as to an untagged bridge
+            conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, RP, rg, rs, rz, ref_e[rg],
+                                                  edge_hw[ref_e[rg]], onto_profile, only=vehicle_edge[ref_e[rg]],
+                                                  twins=True, targets=stay)
+            deck_stats["decks_roads_taken_up"] = int(stay.sum())
         for node, dz in risen.items():      # (a node inside a raised chain: its plane rose with it)
             if node in planes and dz > 0.0:
                 x0, y0, z0, gx, gy = planes[node]
@@ -2001,7 +2058,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
         parts["marking"].append(_part("marking", v, f, fg, len(crossings), [e.id for e in crossings],
                                       ["zebra"] * len(crossings), [()] * len(crossings), xcent))
     geo.parts = {k: v for k, v in parts.items() if v}
-    geo.stats = {"lanes_meshed": len(lanes), "planes_pinned": n_pinned, "own_plane_points": own_plane,
+    geo.stats = {**deck_stats, "lanes_meshed": len(lanes), "planes_pinned": n_pinned, "own_plane_points": own_plane,
                  "junctions_meshed": len(junction_part.ids) if junction_part is not None else 0,
                  "walkingareas_meshed": len({i for i, e in zip(pid, pel) if e == "walkingarea"}),  # (cut: pieces)
                  "junction_lanes_meshed": len(gap_lanes),

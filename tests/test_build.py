@@ -1198,10 +1198,20 @@ def _check_bridge_decks(out: Path, w: dict, dem_path: Path):
     dem = open_dem([str(dem_path)])
     rows = [r for r in _bridge_lane_heights(out, w) if r[1][-1] - r[1][0] > 20.0]
     assert len(rows) >= 20, len(rows)
-    deep = 0
+    deep = at_grade = 0
     for lane, s, z in rows:
         line = z[0] + (z[-1] - z[0]) * (s - s[0]) / (s[-1] - s[0])
-        assert np.max(line - z) < 1.0, f"{lane.id}: the deck dips {np.max(line - z):.2f} m"
+        k = int(np.argmax(line - z))
+        if line[k] - z[k] >= 1.0:
+            # only where it came down to a road it could not clear (netgen.roads._raise_decks):
+            # they cross at one height, two surfaces within a few cm there
+            # (at one of the samples around the lowest: two coincident surfaces are not always
+            # both hit by one ray)
+            near = np.arange(max(0, k - 2), min(len(s), k + 3))
+            hs = _surface_heights(world, _along(lane.shape[:, :2], s[near]))
+            assert any(sum(abs(h - z[q]) < 0.15 for h in hq) >= 2 for q, hq in zip(near, hs)), \
+                f"{lane.id}: the deck dips {line[k] - z[k]:.2f} m"
+            at_grade += 1
         t = np.linspace(s[0], s[-1], 40)
         xy = _along(lane.shape[:, :2], t)
         lon, lat = world.frame.to_lonlat(xy[:, 0], xy[:, 1])
@@ -1213,6 +1223,7 @@ def _check_bridge_decks(out: Path, w: dict, dem_path: Path):
             # the terrain under it: the ground's (levelled to nothing above it)
             assert world.ground_z(xy[k:k + 1, 0], xy[k:k + 1, 1])[0] < deck[k] - 2.0, lane.id
     assert deep >= 5, deep
+    assert at_grade <= len(rows) // 10, (at_grade, len(rows))
     # the decks' undersides (drawn only: class "deck"), facing down, 0.4 m under the lanes
     import trimesh
 

@@ -1158,3 +1158,42 @@ def test_the_ego_is_not_nudged_at_a_joint_where_the_next_lane_takes_it(tmp_path)
     ours = drive(through_pose=True)
     assert ours[-2].startswith(":36156596_"), ours
     assert ours[-1] == "5184590#0_1", ours
+
+
+def test_random_routes_are_drawn_to_edges_a_car_can_use(traffic):
+    """Where 40 draws among all edges (footways, rails, sidewalks' own edges: seven in eight on
+    Helsinki) gave no route, the destinations are drawn among the edges with a lane a car may
+    use: before, the drive stopped with "no route for the ego" (Helsinki, seed 1)."""
+    import random
+
+    t = traffic()
+    s = t._require()
+    cars = t._car_edges()
+    every = [e for e in s.edge.getIDList() if not e.startswith(":")]
+    assert 100 < len(cars) < len(every) / 2, (len(cars), len(every))
+
+    def car_lane(e):
+        lanes = [f"{e}_{i}" for i in range(s.edge.getLaneNumber(e))]
+        return any("passenger" in s.lane.getAllowed(ln) or
+                   (not s.lane.getAllowed(ln) and "passenger" not in s.lane.getDisallowed(ln)) for ln in lanes)
+
+    assert all(car_lane(e) for e in cars)
+    assert not any(car_lane(e) for e in set(every) - set(cars))
+    start = passenger_lanes(s, 50.0)[0][0].rsplit("_", 1)[0]
+    for seed in range(5):
+        route, _ = t.random_route(start, random.Random(seed).getstate())
+        assert len(route) >= 2 and route[0] == start and route[-1] in cars
+    # a generator whose first 40 draws all fall on edges no car can use (drawn again among
+    # the car edges: a route all the same)
+    no_car = sorted(set(every) - set(cars))
+
+    class Unlucky(random.Random):
+        n = 0
+
+        def choice(self, seq):
+            self.n += 1
+            return no_car[self.n % len(no_car)] if self.n <= 40 else super().choice(seq)
+
+    rng = Unlucky(1)
+    route, ok = t._draw_route(start, rng, 800.0)
+    assert rng.n > 40 and len(route) >= 2 and route[-1] in cars
