@@ -465,7 +465,8 @@ def without_turnarounds(sim, edges: list[str]) -> tuple[list[str], list]:
             j = i + 1 if chain else i
             while j < len(edges) - 1 and is_tunnel(sim, edges[j]):
                 j += 1
-            found = _detour(sim, out, edges, i, j, tunnel=j > i or is_tunnel(sim, nxt))
+            tunnel = j > i or is_tunnel(sim, nxt)
+            found = _detour(sim, out, edges, i, j, tunnel=tunnel)
             if found is not None:
                 back, jj, alt = found
                 start = out[len(out) - 1 - back]
@@ -474,6 +475,15 @@ def without_turnarounds(sim, edges: list[str]) -> tuple[list[str], list]:
                 detours.append((start, edges[jj], len(alt) - 2))
                 i = jj + 1
                 continue
+            if tunnel and edges[-1] != cur:
+                # no way round near it (the tunnel rejoins the streets only further on, or runs
+                # on in pieces: since netgen 0.1.26 a tunnel is its own edges): the whole rest
+                # of the route by the car's own router, where it has one
+                alt = route_without_turnarounds(sim, cur, edges[-1])
+                if alt and len(alt) >= 2 and not undrivable_steps(sim, alt):
+                    out.extend(alt[1:])
+                    detours.append((cur, edges[-1], len(alt) - 2))
+                    break
         out.append(nxt)
         i += 1
     return out, detours

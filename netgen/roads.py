@@ -108,12 +108,6 @@ DECK_CLEARANCE_M = 5.0
 DECK_THICKNESS_M = 0.4          # (its underside, drawn only)
 DECK_GRADE = 0.06
 DECK_MAX_GRADE = 0.08
-#: how far a deck that cannot rise over a road within its own length may rise on its approaches
-#: (roads it runs on into without a junction), either side (m)
-DECK_APPROACH_M = 150.0
-#: a deck brought down to a road it cannot clear keeps its ends, and leaves its line at this
-#: grade at most from them
-DECK_LOWER_GRADE = 0.1
 #: how far a sidewalk may reach into a vehicle lane of another road before that piece of it is
 #: left out (m)
 SIDEWALK_INTRUSION_M = 0.3
@@ -868,143 +862,39 @@ def _bridge_decks(edges, ref_e, rg, rs, rtot, rz, deck) -> None:
     rz[pd] = (z0 + u * (z1 - z0))[pd]
 
 
-def _approaches(edges, ref_e, rtot, reach: float = DECK_APPROACH_M):
-    """For :func:`_raise_decks`: ``chain(g)``, the profiles a deck's profile `g` runs on into
-    without a junction (through nodes where only its street and one other meet, "X" and "-X"
-    being one street), up to ``reach`` m either side: (profiles before it, in order; after it)."""
-    n = len(ref_e)
-    num = {edges[int(e)].id: k for k, e in enumerate(ref_e)}
-    fn = [edges[int(e)].from_node for e in ref_e]
-    tn = [edges[int(e)].to_node for e in ref_e]
-    street = []
-    for e in ref_e:
-        eid = edges[int(e)].id
-        o = num.get(eid[1:] if eid.startswith("-") else "-" + eid)
-        street.append(min(num[eid], o) if o is not None else num[eid])
-    streets: dict = {}
-    out_of: dict = {}
-    into: dict = {}
-    for k in range(n):
-        for v in (fn[k], tn[k]):
-            streets.setdefault(v, set()).add(street[k])
-        out_of.setdefault(fn[k], []).append(k)
-        into.setdefault(tn[k], []).append(k)
-
-    def walk(g, forward: bool):
-        got, length, cur = [], 0.0, g
-        while length < reach and len(got) < 20:
-            v = tn[cur] if forward else fn[cur]
-            if len(streets.get(v, ())) != 2:
-                break
-            nxt = [k for k in (out_of if forward else into).get(v, []) if street[k] != street[cur]]
-            if len(nxt) != 1 or nxt[0] == g or nxt[0] in got:
-                break
-            cur = nxt[0]
-            got.append(cur)
-            length += float(rtot[cur])
-        return got
-
-    return lambda g: (walk(g, False)[::-1], walk(g, True))
-
-
-def _raise_decks(edges, ref_e, rg, rs, rtot, rz, deck, edge_deck, clearance) -> dict:
+def _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, clearance) -> None:
     """Lowest OSM layer first, where a road passes under a deck (:func:`_bridge_decks`;
     ``clearance(points, their edges, under-edge mask)``: the heights needed there,
     :func:`_deck_clearance`; a deck of a lower layer counts as a road), the deck rises to clear
     it at :data:`DECK_GRADE` (``rz`` in place) where it can: its ends stay, and from them it
-    rises at :data:`DECK_MAX_GRADE` at most. A bridge too short for that rises on its
-    approaches too (the roads it runs on into without a junction, up to
-    :data:`DECK_APPROACH_M` either side: :func:`_approaches`), their far ends staying: OSM tags
-    only the bridge itself, and the ground model does not have the embankments (Kouvola's
-    bridges over motorway 7/15; until netconvert was kept from joining a bridge with the ways
-    it continues, their joined edge was the deck). Where even that cannot reach the clearance,
-    the deck comes down to the road where it stands less than :data:`CONFORM_MAX_M` over it
-    (the road keeps its heights: roads are not conformed to decks), and they cross at one
-    height. After the junction planes, so that the roads under it have their
-    heights. ``deck``: per profile, ``edge_deck``: per edge. Returns the nodes inside a raised
-    chain and how far their roads' ends rose (their planes are to follow), how many decks came
-    down to a road, the decks (a mask of edges) that neither cleared a road nor came down to
-    it, and the approaches raised (a mask of edges)."""
+    rises at :data:`DECK_MAX_GRADE` at most (a short bridge over a road stays at its ends'
+    height, and the road under it crosses it there, conformed to it as an untagged bridge is:
+    reaching the clearance would take approaches OSM does not tag as the bridge). After the
+    junction planes, so that the roads under it have their heights. ``deck``: per profile,
+    ``edge_deck``: per edge."""
     pd = deck[rg]
     layer_e = np.array([e.layer for e in edges], dtype=np.int64)
     layer = layer_e[ref_e]
-    chain_of = None
-    risen: dict = {}
-    lowered: set = set()
-    cleared: set = set()
-    tried_g: set = set()
-    approach: set = set()
-
-    def pts(k):
-        return np.arange(np.searchsorted(rg, k), np.searchsorted(rg, k, side="right"))
-
     for L in np.unique(layer[deck]):
         idx = np.flatnonzero(pd & (layer[rg] == L))
         need = clearance(idx, ref_e[rg[idx]], ~edge_deck | (layer_e < L))
-        for g in np.unique(rg[idx[np.isfinite(need)]]).tolist():
+        for g in np.unique(rg[idx[np.isfinite(need)]]):
+            i = np.arange(np.searchsorted(rg, g), np.searchsorted(rg, g, side="right"))     # (its points)
+            # (from its ends, which stay, at DECK_MAX_GRADE at most: where a deck cannot rise
+            # enough over every road under it, it stays, and they cross at its height, conformed)
+            cap = np.minimum(rz[i[0]] + DECK_MAX_GRADE * rs[i], rz[i[-1]] + DECK_MAX_GRADE * (rs[i[-1]] - rs[i]))
             c = (rg[idx] == g) & np.isfinite(need)
-            nc = need[c]
-            tried_g.add(g)
-            if chain_of is None:
-                chain_of = _approaches(edges, ref_e, rtot)
-            for before, after in (([], []), chain_of(g)):     # on its own first, then with its approaches
-                seq = list(before) + [g] + list(after)
-                parts = [pts(k) for k in seq]
-                off = np.cumsum([0.0] + [float(rtot[k]) for k in seq[:-1]])
-                i = np.concatenate(parts)
-                S = np.concatenate([rs[q] + o for q, o in zip(parts, off)])
-                sc = rs[idx[c]] + off[len(before)]
-                # (from the chain's ends, which stay, at DECK_MAX_GRADE at most: where a deck cannot
-                # rise enough over every road under it, it stays, and they cross at its height)
-                cap = np.minimum(rz[i[0]] + DECK_MAX_GRADE * S, rz[i[-1]] + DECK_MAX_GRADE * (S[-1] - S))
-                if np.any(nc > np.interp(sc, S, cap) + 1e-6):
-                    continue    # (partly raised, it would stand lower than a car over a road)
-                env = np.max(nc[None, :] - DECK_GRADE * np.abs(S[:, None] - sc[None, :]), axis=1)
-                # (no dips between the points that need it: over a road running under it at a
-                # slant, sampled every few metres, the cones alone left a 0.25 m wave every 16
-                # m, which threw a car at 19 m/s off a Kouvola motorway bridge)
-                o = np.argsort(sc)
-                inside = (S >= sc[o[0]]) & (S <= sc[o[-1]])
-                env[inside] = np.maximum(env[inside], np.interp(S[inside], sc[o], nc[o]))
-                new = np.maximum(rz[i], np.minimum(env, cap))
-                first = np.cumsum([0] + [len(q) for q in parts[:-1]])
-                for k, f in zip(seq[1:], first[1:]):             # (the nodes inside the chain)
-                    node = edges[int(ref_e[k])].from_node
-                    risen[node] = max(risen.get(node, 0.0), float(new[f] - rz[i[f]]))
-                rz[i] = new
-                cleared.add(g)
-                approach.update(k for k in seq if not deck[k])
-                break
-            else:
-                # it cannot clear: where it stands less than CONFORM_MAX_M over the road (a car
-                # would not pass under it), it comes down to the road, 2 cm over it, fading
-                # back to its own line over CONFORM_FADE_M, its ends staying (the road keeps
-                # its own heights, which its junctions share: Portland, the I-405 ramp bridge
-                # 27593301 left 0.5 m over 5518549 beside junction 40478018, and the road taken
-                # up to it, stood 0.27 m over the junction's edge, which a car drove into)
-                at = idx[c]
-                road = nc - DECK_CLEARANCE_M + CONFORM_BELOW_M
-                low = rz[at] - road < CONFORM_MAX_M
-                if not low.any():
-                    continue
-                i = pts(g)
-                on = np.zeros(len(i), dtype=bool)
-                on[at[low] - i[0]] = True
-                delta = np.zeros(len(i))
-                delta[at[low] - i[0]] = road[low] - rz[at[low]]
-                # (from its ends, which stay, at DECK_LOWER_GRADE off its line at most: else it
-                # stays as it is)
-                cap = DECK_LOWER_GRADE * np.minimum(rs[i] - rs[i[0]], rs[i[-1]] - rs[i])
-                if np.any(np.abs(delta[on]) > cap[on] + 1e-6):
-                    continue
-                w, near = _fade_weights(on, np.zeros(len(i), dtype=np.int64), rs[i], CONFORM_FADE_M)
-                rz[i] += np.clip(w * delta[near], -cap, cap)
-                lowered.add(g)
-    stay = np.zeros(len(edges), dtype=bool)
-    stay[ref_e[sorted(tried_g - lowered - cleared)]] = True
-    raised = np.zeros(len(edges), dtype=bool)
-    raised[ref_e[sorted(approach)]] = True
-    return risen, len(lowered), stay, raised
+            nc, sc = need[c], rs[idx[c]]
+            if np.any(nc > np.interp(sc, rs[i], cap) + 1e-6):
+                continue        # (partly raised, it would stand lower than a car over a road)
+            env = np.max(nc[None, :] - DECK_GRADE * np.abs(rs[i][:, None] - sc[None, :]), axis=1)
+            # (no dips between the points that need it: over a road running under it at a
+            # slant, sampled every few metres, the cones alone left waves, 0.29 m deep on
+            # Kouvola's motorway bridge 39653008#1; one threw a car at 19 m/s off a bridge)
+            o = np.argsort(sc)
+            inside = (rs[i] >= sc[o[0]]) & (rs[i] <= sc[o[-1]])
+            env[inside] = np.maximum(env[inside], np.interp(rs[i][inside], sc[o], nc[o]))
+            rz[i] = np.maximum(rz[i], np.minimum(env, cap))
 
 
 def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, junctions=None,
@@ -1432,16 +1322,12 @@ def _box_pairs(bmin, bmax, boxes, cell: float = 25.0):
     return i[ok], j[ok]
 
 
-def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins: bool = False,
-                     decks=None, targets=None):
+def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins: bool = False):
     """For :func:`_conform_to_higher_roads`: the points (numbers) whose cross-section runs far
     enough inside a vehicle lane of a higher-ranked road that their road does not meet at a
     node, with that lane (number among the vehicle lanes) and its edge: the highest-ranked
-    one per point. With ``twins``, twin roads (:data:`CONFORM_TWIN_MIN_OVERLAP_M`) count too.
-    ``decks`` (a mask of edges; None: all) are the bridges' decks a road that is none may be
-    taken to (:func:`_raise_decks`: a deck clears a road, or comes down to it, or neither);
-    ``targets`` (a mask of edges), if given, the only roads looked at."""
-    veh, cores, rank, fn, tn, core_box, nxy, nrad, edge_deck, opp = higher
+    one per point. With ``twins``, twin roads (:data:`CONFORM_TWIN_MIN_OVERLAP_M`) count too."""
+    veh, cores, rank, fn, tn, core_box, nxy, nrad, _, opp = higher
     none = np.zeros(0, np.int64)
     sel = np.arange(len(P)) if only is None else np.flatnonzero(only)
     if not len(sel):
@@ -1455,10 +1341,6 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins:
     # CONFORM_NODE_CLEAR_M more), where two one-way streets between the same two nodes run
     # over each other (Lauf: 0.1-0.2 m apart in height at a bend, a step the car ran into)
     ok = rank[B] > rank[A]
-    if decks is not None:
-        ok &= ~edge_deck[B] | edge_deck[A] | decks[B]
-    if targets is not None:
-        ok &= targets[B]
     Q = P[sel[qi]]
     # (a street's two directions share one profile already: no twins)
     twin = (((fn[A] == fn[B]) & (tn[A] == tn[B])) | ((fn[A] == tn[B]) & (tn[A] == fn[B]))) & twins & (opp[A] != B)
@@ -1487,8 +1369,7 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins:
 
 def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_edge, halfw, onto,
                              lower_only: bool = False, only=None, fade: float = CONFORM_FADE_M,
-                             cache: dict | None = None, twins: bool = False, tilt=None, unit_left=None,
-                             decks=None, targets=None) -> int:
+                             cache: dict | None = None, twins: bool = False, tilt=None, unit_left=None) -> int:
     """Heights ``z`` (in place) of the points `P` (lines `g`, arc length `s`) of roads that
     overlap a higher-ranked road without meeting it at a node (or far from the node where they
     meet: :data:`CONFORM_NODE_CLEAR_M`): where a point's cross-section
@@ -1501,10 +1382,10 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     before the junction planes) conforms twin roads too (:data:`CONFORM_TWIN_MIN_OVERLAP_M`,
     up to their nodes). Two roads that are more than :data:`CONFORM_MAX_M` apart in height anywhere they overlap are a bridge and
     the road under it: neither moves. Given ``tilt`` and ``unit_left`` (lane points: their
-    height gained per metre to the left, and that direction), a moved point also takes the
-    other road's slope across its lane, fading as its height does: where a street crosses a
-    short ramp of a bridge that cannot rise over it (Monaco: Avenue de la Costa's, 23 %), it
-    lay level across the ramp, its side 0.16 m over it.
+    height gained per metre to the left, and that direction), every overlapping point also
+    takes the other road's slope across its lane, fading as the height does: where a street
+    crosses a steep ramp it lay level across it, its side 0.16 m over the ramp (Monaco: Avenue
+    de la Costa's bridge over Boulevard du Larvotto, 23 %).
 
     Roads that cross without a junction are a bridge or tunnel that OSM does not tag (a
     service road in Monaco's old railway tunnel under Boulevard Princesse Charlotte), or a
@@ -1519,7 +1400,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     if cache is not None and "pairs" in cache:
         pi, vi, B = cache["pairs"]
     else:
-        pi, vi, B = _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only, twins, decks, targets)
+        pi, vi, B = _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only, twins)
         if cache is not None:
             cache["pairs"] = (pi, vi, B)
     if not len(pi):
@@ -1551,8 +1432,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
         step = 0.5 * unit_left[pi]
         across = np.full(n, np.nan)
         across[pi] = onto(P[pi] + step, veh[vi], B) - onto(P[pi] - step, veh[vi], B)
-        ov = np.isfinite(across)
-        wt, nt = _fade_weights(ov, g, s, fade)
+        wt, nt = _fade_weights(np.isfinite(across), g, s, fade)
         mi = np.flatnonzero(wt > 0.0)
         tilt[mi] += wt[mi] * (across[nt[mi]] - tilt[mi])
     return int(moved.sum())
@@ -1619,8 +1499,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     overlaps: dict = {}
     conform = lambda: _conform_to_higher_roads(edges, lanes, lane_edge, higher, RP, rg, rs, rz,   # noqa: E731
                                                ref_e[rg], edge_hw[ref_e[rg]], onto_profile,
-                                               only=vehicle_edge[ref_e[rg]], cache=overlaps, twins=True,
-                                               decks=np.zeros(len(edges), dtype=bool))
+                                               only=vehicle_edge[ref_e[rg]], cache=overlaps, twins=True)
     conform()
     planes: dict = {}
     ends_moved, n_pinned = _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=edge_hw[ref_e],
@@ -1628,24 +1507,9 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     geo.planes = planes
 
     conformed = conform()
-    deck_stats = {"decks_down_to_roads": 0, "deck_approach_nodes_raised": 0, "decks_roads_taken_up": 0}
-    approach_e = np.zeros(len(edges), dtype=bool)
     if deck.any():
-        risen, deck_stats["decks_down_to_roads"], stay, approach_e = _raise_decks(
-            edges, ref_e, rg, rs, rtot, rz, deck, edge_deck, lambda idx, own_e, under_e: _deck_clearance(
+        _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, lambda idx, own_e, under_e: _deck_clearance(
             RP, idx, own_e, edge_hw[own_e], under_e, higher, lane_edge, onto_profile))
-        deck_stats["deck_approach_nodes_raised"] = sum(dz > 0.0 for dz in risen.values())
-        if stay.any():
-            # a deck that neither clears a road nor could come down to it: the road is taken
-            # to it, as to an untagged bridge
-            conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, RP, rg, rs, rz, ref_e[rg],
-                                                  edge_hw[ref_e[rg]], onto_profile, only=vehicle_edge[ref_e[rg]],
-                                                  twins=True, targets=stay)
-            deck_stats["decks_roads_taken_up"] = int(stay.sum())
-        for node, dz in risen.items():      # (a node inside a raised chain: its plane rose with it)
-            if node in planes and dz > 0.0:
-                x0, y0, z0, gx, gy = planes[node]
-                planes[node] = (x0, y0, z0 + dz, gx, gy)
 
     # 2. lane centrelines, resampled, with heights from their edge's profile
     LP, lg = _concat([l.shape for l in lanes])
@@ -1719,9 +1583,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     car_k = ~(side | rail)[cg[pt_keep]]
     sup_car = [car_k, np.concatenate([car_k, car_k])]
     # (a bridge's deck, its junctions along it: held up by no terrain where above the ground)
-    # (a deck's points, and those of an approach raised with it, hold no terrain up where above
-    # the ground: an approach's embankment, levelled up to it, buried a Kouvola motorway beside)
-    dk = (edge_deck | approach_e)[lane_edge[cg[pt_keep]]]
+    dk = edge_deck[lane_edge[cg[pt_keep]]]
     sup_deck = [dk, np.concatenate([dk, dk])]
     touch: dict = {}
     for e, d in zip(edges, edge_deck):
@@ -2072,7 +1934,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
         parts["marking"].append(_part("marking", v, f, fg, len(crossings), [e.id for e in crossings],
                                       ["zebra"] * len(crossings), [()] * len(crossings), xcent))
     geo.parts = {k: v for k, v in parts.items() if v}
-    geo.stats = {**deck_stats, "lanes_meshed": len(lanes), "planes_pinned": n_pinned, "own_plane_points": own_plane,
+    geo.stats = {"lanes_meshed": len(lanes), "planes_pinned": n_pinned, "own_plane_points": own_plane,
                  "junctions_meshed": len(junction_part.ids) if junction_part is not None else 0,
                  "walkingareas_meshed": len({i for i, e in zip(pid, pel) if e == "walkingarea"}),  # (cut: pieces)
                  "junction_lanes_meshed": len(gap_lanes),

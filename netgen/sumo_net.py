@@ -41,7 +41,7 @@ def sumo_env() -> dict:
     return env
 
 
-NETCONVERT_VERSION_TAG = "netconvert-opts-v6"
+NETCONVERT_VERSION_TAG = "netconvert-opts-v7"
 
 
 def netconvert_args(osm_xml: Path, out_net: Path, proj: str, geo_boundary=None, tls_join: bool = False,
@@ -67,9 +67,9 @@ def netconvert_args(osm_xml: Path, out_net: Path, proj: str, geo_boundary=None, 
     mapped as a second way over the public streets it borrows, and as its own 2.7 km edge it
     laid a second road surface over them, at other heights, with SUMO traffic on it.
 
-    ``keep_edges``: a file of edge ids ``--geometry.remove`` is to leave whole (the bridges,
-    tunnels and ways on other layers: :func:`netgen.osm_file.keep_edges_file`), so that an
-    edge is all deck, all tunnel or all ground.
+    ``keep_edges``: a file of edge ids ``--geometry.remove`` is to leave whole (the tunnels and
+    the ways on other layers that are no bridge: :func:`netgen.osm_file.keep_edges_file`), so
+    that an edge is all tunnel or all ground.
     """
     tm = sumo_home() / "data" / "typemap"
     args = [

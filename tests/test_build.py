@@ -548,11 +548,11 @@ def test_limit_grade_is_the_mean_of_the_envelopes():
 
 
 def _check_edges_on_one_level(out: Path, w: dict, pbf: Path) -> int:
-    """No edge joins OSM ways of different levels (bridge, tunnel, layer): netconvert's
-    ``--geometry.remove`` joined Portland's Stadium Freeway, two ground ways and a bridge at
-    layer 1, into one 573 m deck level with the Sheridan Street bridge over it (279 such edges
-    in Portland's network; a passage through a building is on the ground). Returns how many
-    edges join several ways."""
+    """No edge joins a tunnel with a way that is none, nor ways of other layers but for a
+    bridge's (netconvert's ``--geometry.remove`` joined them, keeping the tags of one of them:
+    the street a tunnel leads into was left unmeshed, a hole, or the tunnel was meshed over the
+    ground; Monaco had 37 such edges with car lanes, Portland 9). Returns how many edges join
+    several ways."""
     from lxml import etree
 
     from netgen.osm_file import SURFACE_TUNNEL_VALUES
@@ -560,8 +560,8 @@ def _check_edges_on_one_level(out: Path, w: dict, pbf: Path) -> int:
     levels = {}
     for o in osmium.FileProcessor(str(pbf), osmium.osm.WAY).with_filter(osmium.filter.KeyFilter("highway")):
         t = o.tags
-        levels[o.id] = (t.get("bridge", "no") != "no", t.get("tunnel", "no") not in SURFACE_TUNNEL_VALUES,
-                        t.get("layer", "0"))
+        bridge = t.get("bridge", "no") != "no"
+        levels[o.id] = (t.get("tunnel", "no") not in SURFACE_TUNNEL_VALUES, "bridge" if bridge else t.get("layer", "0"))
     joined, mixed = 0, []
     for _, el in etree.iterparse(str(out / w["net_file"]), tag="edge"):
         if el.get("function") is None:
@@ -570,7 +570,10 @@ def _check_edges_on_one_level(out: Path, w: dict, pbf: Path) -> int:
             ways = {int(i.split("#")[0].lstrip("-")) for v in orig for i in v.split()}
             if len(ways) > 1:
                 joined += 1
-                if len({levels.get(i) for i in ways}) > 1:
+                lv = {levels.get(i) for i in ways}
+                tunnel = {x[0] for x in lv if x}
+                layers = {x[1] for x in lv if x and x[1] != "bridge"}
+                if len(tunnel) > 1 or len(layers) > 1:
                     mixed.append((el.get("id"), sorted(ways)))
         el.clear()
     assert not mixed, mixed[:5]
@@ -861,10 +864,7 @@ def _check_lower_roads_under_higher_ones(out: Path, w: dict) -> int:
     layer, netconvert priority, vehicle lanes, width, id) lies under the other's vehicle lanes,
     more than 0.6 m in from their sides: each road followed its own patch of ground, and the
     service road in Monaco's old railway tunnel stood 0.3 m through Boulevard Princesse
-    Charlotte, where a car drove into it. Up to 8 cm over: a face between a lane point taken
-    under the other road and the next point, 4.3 m on (this test's world samples lanes every
-    5 m), is straight while the ramp it crosses drops 22 % (Avenue de la Costa's bridge over
-    Boulevard du Larvotto: 6 cm). Returns how many faces were checked."""
+    Charlotte, where a car drove into it. Returns how many faces were checked."""
     import shapely
     import trimesh
 
@@ -908,7 +908,7 @@ def _check_lower_roads_under_higher_ones(out: Path, w: dict) -> int:
             if len(hit):
                 checked += 1
                 dz = P[p, 2] - hit[:, 2].max()
-                if dz > 0.08:
+                if dz > 0.05:
                     above.append((lane_id, ln.id, round(float(dz), 2)))
     assert checked > 10
     assert not above, (len(above), sorted(above, key=lambda a: -a[2])[:5])
@@ -1198,20 +1198,10 @@ def _check_bridge_decks(out: Path, w: dict, dem_path: Path):
     dem = open_dem([str(dem_path)])
     rows = [r for r in _bridge_lane_heights(out, w) if r[1][-1] - r[1][0] > 20.0]
     assert len(rows) >= 20, len(rows)
-    deep = at_grade = 0
+    deep = 0
     for lane, s, z in rows:
         line = z[0] + (z[-1] - z[0]) * (s - s[0]) / (s[-1] - s[0])
-        k = int(np.argmax(line - z))
-        if line[k] - z[k] >= 1.0:
-            # only where it came down to a road it could not clear (netgen.roads._raise_decks):
-            # they cross at one height, two surfaces within a few cm there
-            # (at one of the samples around the lowest: two coincident surfaces are not always
-            # both hit by one ray)
-            near = np.arange(max(0, k - 2), min(len(s), k + 3))
-            hs = _surface_heights(world, _along(lane.shape[:, :2], s[near]))
-            assert any(sum(abs(h - z[q]) < 0.15 for h in hq) >= 2 for q, hq in zip(near, hs)), \
-                f"{lane.id}: the deck dips {line[k] - z[k]:.2f} m"
-            at_grade += 1
+        assert np.max(line - z) < 1.0, f"{lane.id}: the deck dips {np.max(line - z):.2f} m"
         t = np.linspace(s[0], s[-1], 40)
         xy = _along(lane.shape[:, :2], t)
         lon, lat = world.frame.to_lonlat(xy[:, 0], xy[:, 1])
@@ -1223,7 +1213,6 @@ def _check_bridge_decks(out: Path, w: dict, dem_path: Path):
             # the terrain under it: the ground's (levelled to nothing above it)
             assert world.ground_z(xy[k:k + 1, 0], xy[k:k + 1, 1])[0] < deck[k] - 2.0, lane.id
     assert deep >= 5, deep
-    assert at_grade <= len(rows) // 10, (at_grade, len(rows))
     # the decks' undersides (drawn only: class "deck"), facing down, 0.4 m under the lanes
     import trimesh
 
@@ -1277,6 +1266,14 @@ def test_a_bridge_over_a_road_clears_it_or_meets_it(tmp_path):
     between = (gaps > 0.3) & (gaps < 4.5)
     assert not between.any(), gaps[between]
     assert np.sum(gaps >= 4.5) >= 2 and np.sum(gaps <= 0.3) >= 2, np.round(gaps, 2)
+    # a risen deck has no dip between where it clears roads (over a road passing under at a
+    # slant, the motorway bridge 39653008#1 had a 0.29 m dip; with bridges kept apart from
+    # their approaches, such a wave threw a car at 19 m/s off a motorway bridge)
+    rows = [r for r in _bridge_lane_heights(tmp_path / "w", w) if len(r[2]) >= 3]
+    assert len(rows) >= 10, len(rows)
+    for lane, _, z in rows:
+        dip = np.minimum(np.maximum.accumulate(z), np.maximum.accumulate(z[::-1])[::-1]) - z
+        assert dip.max() < 0.05, (lane.id, round(float(dip.max()), 2))
 
 
 def test_portland_with_geotiff_and_voids(tmp_path):

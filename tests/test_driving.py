@@ -1167,11 +1167,9 @@ def test_a_car_on_a_bridge_is_mirrored_on_its_deck_not_on_the_ground(monaco):
 
     sim = start_sim(monaco)
     try:
-        # (the bridge is two OSM ways, one edge each since netgen 0.1.26: the one over the
-        # avenue's lane, where the deck stands highest)
-        lanes = [ln for ln in ("503783368_0", "92627405_0") if ln in sim.world.bridge_lanes()]
-        assert lanes
-        lane, (x, y, rise, P, d, sk) = max(((ln, _highest_deck_point(sim, ln)) for ln in lanes), key=lambda t: t[1][2])
+        lane = "503783368_0"
+        assert lane in sim.world.bridge_lanes()
+        x, y, rise, P, d, sk = _highest_deck_point(sim, lane)
         assert rise > 3.0                         # the deck stands over the ground here
         h = float(np.arctan2(*(P[min(len(P) - 1, int(np.searchsorted(d, sk)))] - P[max(0, int(np.searchsorted(d, sk)) - 1)])[::-1]))
         one = lambda v: np.array([v])             # noqa: E731
@@ -1278,7 +1276,7 @@ def test_a_car_on_another_level_is_no_obstacle(monaco):
     sim = start_sim(monaco)
     try:
         s, ap = sim.traffic.sumo, sim.driver
-        deck = "92627405_0"     # (the bridge's way over the avenue: its own edge since netgen 0.1.26)
+        deck = "503783368_0"
         D = np.array(s.lane.getShape(deck))[:, :2]
         dd = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(D, axis=0).T))])
         # where the avenue's turn through junction 273246212 passes under the deck
@@ -1341,7 +1339,7 @@ def test_a_car_on_another_level_is_no_obstacle(monaco):
 
         # 2. the path on the deck: a car on the avenue's turn under it is on another level, a car
         # ahead on the deck is the lead
-        over = LanePath(s, ["92627405"])
+        over = LanePath(s, ["503783368"])
         sim.path = over
         ap._new_path(over)
         assert ap._path_bridge is not None
