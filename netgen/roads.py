@@ -89,7 +89,7 @@ END_FADE_M = 10.0
 CONFORM_FADE_M = 15.0
 CONFORM_BELOW_M = 0.02
 SOFT_STEP_M = 0.15               # (a path drawn into a vehicle lane, this far off its height: left out there)
-CONFORM_MAX_M = 2.5             # (further apart than this somewhere: a bridge over a road, both kept)
+CONFORM_MAX_M = 1.6             # (further apart than this somewhere: a bridge over a road, both kept)
 CONFORM_NODE_CLEAR_M = 15.0    # roads meeting at a node conform only this far beyond its junction
 CONFORM_MIN_OVERLAP_M = 1.0     # (of the cross-section inside the other road's lane: a sliver
                                 # where two roads' lanes graze near a junction does not count)
@@ -1369,7 +1369,7 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins:
 
 def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_edge, halfw, onto,
                              lower_only: bool = False, only=None, fade: float = CONFORM_FADE_M,
-                             cache: dict | None = None, twins: bool = False, tilt=None, unit_left=None) -> int:
+                             cache: dict | None = None, twins: bool = False) -> int:
     """Heights ``z`` (in place) of the points `P` (lines `g`, arc length `s`) of roads that
     overlap a higher-ranked road without meeting it at a node (or far from the node where they
     meet: :data:`CONFORM_NODE_CLEAR_M`): where a point's cross-section
@@ -1381,11 +1381,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     overlap which roads for another call on the same points; ``twins`` (the edges' profiles,
     before the junction planes) conforms twin roads too (:data:`CONFORM_TWIN_MIN_OVERLAP_M`,
     up to their nodes). Two roads that are more than :data:`CONFORM_MAX_M` apart in height anywhere they overlap are a bridge and
-    the road under it: neither moves. Given ``tilt`` and ``unit_left`` (lane points: their
-    height gained per metre to the left, and that direction), every overlapping point also
-    takes the other road's slope across its lane, fading as the height does: where a street
-    crosses a steep ramp it lay level across it, its side 0.16 m over the ramp (Monaco: Avenue
-    de la Costa's bridge over Boulevard du Larvotto, 23 %).
+    the road under it: neither moves.
 
     Roads that cross without a junction are a bridge or tunnel that OSM does not tag (a
     service road in Monaco's old railway tunnel under Boulevard Princesse Charlotte), or a
@@ -1407,7 +1403,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
         return 0
     tz = onto(P[pi], veh[vi], B)
     fin = np.isfinite(tz)
-    pi, vi, B, tz = pi[fin], vi[fin], B[fin], tz[fin] - CONFORM_BELOW_M
+    pi, B, tz = pi[fin], B[fin], tz[fin] - CONFORM_BELOW_M
     # two roads further apart in height than a car is tall are a bridge and the road under it
     # (a car on the lower one passes under the other): both stay
     pair = own_edge[pi] * len(edges) + B
@@ -1415,7 +1411,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     apart = np.zeros(inv.max() + 1 if len(inv) else 0)
     np.maximum.at(apart, inv, np.abs(tz - z[pi]))
     keep = apart[inv] <= CONFORM_MAX_M
-    pi, vi, B, tz = pi[keep], vi[keep], B[keep], tz[keep]
+    pi, tz = pi[keep], tz[keep]
     n = len(P)
     delta = np.zeros(n)             # (the move, not the height, fades: the road keeps its grade)
     delta[pi] = tz - z[pi]
@@ -1423,25 +1419,9 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
         delta = np.minimum(delta, 0.0)
     on = np.zeros(n, dtype=bool)
     on[pi[delta[pi] != 0.0]] = True
-    w, near = _fade_weights(on, g, s, fade)
-    moved = w > 0.0
-    z[moved] += w[moved] * delta[near[moved]]
-    if tilt is not None and unit_left is not None and len(pi):
-        # every overlapping point (moved or already under) takes the other road's slope across
-        # its lane (its height half a metre either side), fading likewise
-        step = 0.5 * unit_left[pi]
-        across = np.full(n, np.nan)
-        across[pi] = onto(P[pi] + step, veh[vi], B) - onto(P[pi] - step, veh[vi], B)
-        wt, nt = _fade_weights(np.isfinite(across), g, s, fade)
-        mi = np.flatnonzero(wt > 0.0)
-        tilt[mi] += wt[mi] * (across[nt[mi]] - tilt[mi])
-    return int(moved.sum())
-
-
-def _fade_weights(on, g, s, fade: float):
-    """For each point of the lines `g` (arc length `s`): the nearest point of its own line in
-    the mask `on`, along it, and a weight falling from 1 there to 0 at ``fade`` m from it."""
-    n = len(on)
+    if not on.any():
+        return 0
+    # each point: the nearest moved point of its own line, along it
     idx = np.arange(n)
     prev = np.maximum.accumulate(np.where(on, idx, -1))
     nxt = np.minimum.accumulate(np.where(on, idx, n)[::-1])[::-1]
@@ -1449,7 +1429,10 @@ def _fade_weights(on, g, s, fade: float):
     dprev = np.where((prev >= 0) & (g[pv] == g), s - s[pv], np.inf)
     dnext = np.where((nxt < n) & (g[nx] == g), s[nx] - s, np.inf)
     near = np.where(dprev <= dnext, pv, nx)
-    return np.clip(1.0 - np.minimum(dprev, dnext) / fade, 0.0, 1.0), near
+    w = np.clip(1.0 - np.minimum(dprev, dnext) / fade, 0.0, 1.0)
+    moved = w > 0.0
+    z[moved] += w[moved] * delta[near[moved]]
+    return int(moved.sum())
 
 
 def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | None = None) -> RoadGeometry:
@@ -1566,7 +1549,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     # stood 0.3 m through it)
     conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, lane_edge[cg], hw,
                                           lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0],
-                                          lower_only=True, only=drive[cg], tilt=tilt, unit_left=unit_left)
+                                          lower_only=True, only=drive[cg])
     # the pieces of sidewalks, footways, paths and cycleways (lanes no car uses) that lie on
     # another road's carriageway are left out, and do not hold the ground up either (a
     # footbridge over Avenue du Port, kept on the ground, stood 0.7-1.5 m above the road
