@@ -1344,8 +1344,8 @@ class SumoTraffic(Component):
     def _car_edges(self) -> list:
         """The network's edges with a lane a car may use (where ``_draw_route`` draws again when
         40 draws among all edges gave no route: seven in eight edges are footways, rails and the
-        like with no route to them, and on Helsinki at netgen 0.1.26 all 40 draws of seed 1
-        missed)."""
+        like with no route to them, and on a Helsinki network with its bridges kept apart all 40
+        draws of seed 1 missed)."""
         cached = getattr(self, "_car_edges_cache", None)
         if cached is None:
             s = self._require()

@@ -1163,7 +1163,8 @@ def test_the_ego_is_not_nudged_at_a_joint_where_the_next_lane_takes_it(tmp_path)
 def test_random_routes_are_drawn_to_edges_a_car_can_use(traffic):
     """Where 40 draws among all edges (footways, rails, sidewalks' own edges: seven in eight on
     Helsinki) gave no route, the destinations are drawn among the edges with a lane a car may
-    use: before, the drive stopped with "no route for the ego" (Helsinki, seed 1)."""
+    use: before, the drive stopped with "no route for the ego" (seed 1, on a Helsinki network
+    with its bridges kept apart)."""
     import random
 
     t = traffic()
