@@ -513,6 +513,11 @@ class Simulation:
                 log.info("no new route either: %s", e2)
                 self._extend_retry_t = self.t + 10.0
             return
+        if len(more) < 2:
+            # nothing to drive on to (every draw ended where it began): drawn again in 2 s,
+            # not every frame (each draw can take 0.4 s)
+            self._extend_retry_t = self.t + 2.0
+            return
         if cur_edge in self.route:
             i = self.route.index(cur_edge)
             self.route = self.route[i:] + more[1:]
