@@ -180,8 +180,8 @@ def _cache_entry(path: Path, cache_dir: Path, ext: str, marker_ext: str):
 #: OSM ``tunnel=*`` values of roads that stay on the ground (through a building, under an
 #: avalanche roof): meshed like any road
 SURFACE_TUNNEL_VALUES = frozenset({"no", "", "building_passage", "avalanche_protector"})
-#: the tags that set a way apart from the ways it continues (a tunnel, another level)
-LEVEL_KEYS = ("bridge", "tunnel", "layer")
+#: the tags a way kept apart has one of (:func:`_level_way`: a tunnel, another layer)
+LEVEL_KEYS = ("tunnel", "layer")
 
 
 def _level_way(tags) -> bool:
