@@ -60,12 +60,12 @@ _STATIC = {
 } | {
     ("sumo", "edge", n) for n in ("getLaneNumber", "getIDList", "getStreetName", "getFromJunction",
                                   "getToJunction", "getParameter")
-} | {("incoming_lanes",), ("via_lanes",)} | {
+} | {("incoming_lanes",), ("via_lanes",), ("lane_links",)} | {
     ("sumo", "junction", n) for n in ("getIncomingEdges", "getOutgoingEdges", "getPosition", "getShape",
                                       "getIDList")
 } | {
     ("sumo", "trafficlight", n) for n in ("getControlledLinks", "getControlledLanes", "getIDList")
-}
+} | {("sumo", "simulation", "getNetBoundary")}
 
 
 # reads prefetched only for a vehicle on a lane: the caller guards them (libsumo's getLeader
@@ -318,6 +318,12 @@ class _Remote:
 
     def __repr__(self):
         return f"<remote {'.'.join(self._path)} in SUMO's worker process>"
+
+    def network_links(self) -> dict:
+        """lane -> its links, every lane of the network, read in one call and kept until the
+        network changes (``SumoTraffic.lane_links``): a route search reads hundreds of lanes'
+        links, and each ``lane.getLinks`` across the pipe waits for the step in flight."""
+        return self._tp._call(("lane_links",), (), {})
 
 
 class TrafficProcess(Component):

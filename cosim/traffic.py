@@ -1312,18 +1312,23 @@ class SumoTraffic(Component):
             # drawn tighter than its full lock) with no way around: another destination
             # or ending where every way on has one (the head of a one-way street down to a
             # hairpin: the route drawn after this one could only go through it)
-            bad = len(r.edges) >= 2 and (any(is_tunnel(s, e) for e in r.edges) or
-                                         bool(undrivable_steps(s, without_turnarounds(s, list(r.edges))[0])) or
-                                         not escapes(s, r.edges[-1]))
+            # (a clean route is returned with its detours made here, where libsumo answers
+            # in-process: the car's lane path would look for them again across the pipe, 1.9 s
+            # for one extension of the default run)
+            fixed = list(r.edges)
+            bad = len(fixed) >= 2 and any(is_tunnel(s, e) for e in fixed)
+            if len(fixed) >= 2 and not bad:
+                fixed = without_turnarounds(s, fixed)[0]
+                bad = bool(undrivable_steps(s, fixed)) or not escapes(s, fixed[-1])
             if r.length >= min_len:
                 if bad:
                     fallback = fallback or list(r.edges)
                     continue
-                return list(r.edges), True
+                return fixed, True
             if len(r.edges) > len(best):
                 best = list(r.edges)
-            if not bad and len(r.edges) >= 2 and r.length > clean_len:
-                clean, clean_len = list(r.edges), float(r.length)
+            if not bad and len(fixed) >= 2 and r.length > clean_len:
+                clean, clean_len = fixed, float(r.length)
         if clean is not None:
             return clean, True
         if fallback is not None:
@@ -1504,16 +1509,26 @@ class SumoTraffic(Component):
         self._read_links()
         return self._vias
 
+    def lane_links(self) -> dict[str, tuple]:
+        """lane -> ``lane.getLinks(lane)``, every lane of the network, junction lanes too (one
+        call: cached per network). For the network's shape (route searches): the lights'
+        states in it are those of the moment it was read."""
+        key = (self._generation, str(self.net_file))
+        if getattr(self, "_links_key", None) != key:
+            s = self._require()
+            self._links = {lane: tuple(s.lane.getLinks(lane)) for lane in s.lane.getIDList()}
+            self._links_key = key
+        return self._links
+
     def _read_links(self) -> None:
         key = (self._generation, str(self.net_file))
         if getattr(self, "_incoming_key", None) != key:
             s = self._require()
             inc: dict = {}
             vias: dict = {}
-            for lane in s.lane.getIDList():
+            for lane, links in self.lane_links().items():
                 if lane.startswith(":"):
                     continue
-                links = s.lane.getLinks(lane)
                 for link in links:
                     inc.setdefault(link[0], []).append(lane)
                 vias[lane] = tuple(sorted({v for k in links if k[4] for v in _via_lanes(s, k[4])}))

@@ -690,6 +690,33 @@ def test_a_path_keeps_its_points_after_a_sharp_turn(helsinki):
         sim.teardown()
 
 
+def test_a_zigzag_through_overlapping_junctions_is_no_turn(helsinki):
+    """Mikonkatu, Helsinki: three signal nodes within 6 m, whose junctions overlap; each 0.2 m
+    edge begins 2.2 m behind the end of the one before. The chain of lane shapes zig-zags
+    back and forth, and read as a turn 19.8 m wider than the car's full lock: every route on
+    from Mikonkatu was refused, and the default run stood at the end of its path from 40 s.
+    A zig-zag that comes forward again within 5 m is dropped; a real sharp turn keeps its
+    points (test_a_path_keeps_its_points_after_a_sharp_turn)."""
+    import random
+
+    from cosim.driving import TURN_DEVIATION_MAX_M, _forward_points, _turnaround, car_turn_radius, turn_deviation
+
+    zig = np.array([[0.0, -10.0], [0.0, 0.0], [0.0, 0.2], [0.1, -2.0], [0.1, -1.8], [0.0, 2.6], [0.0, 12.0]])
+    assert _forward_points(zig).tolist() == [True, True, True, False, False, True, True]
+    assert turn_deviation(zig, car_turn_radius()) <= TURN_DEVIATION_MAX_M
+    # back 4 m and never forward again (a U-turn): kept
+    back = np.array([[0.0, 0.0], [0.0, 5.0], [1.0, 2.0], [2.0, 0.0], [3.0, -6.0]])
+    assert _forward_points(back).all()
+    sim = start_sim(helsinki, start=HEL_MID)
+    try:
+        s = sim.traffic.sumo
+        assert not _turnaround(s, "127810493#1", "127810493#2", "127810493#3")
+        at, more, _ = sim.traffic.random_extension(["127810490#1"], 0, random.Random(0).getstate())
+        assert at == 0 and more[0] == "127810490#1" and len(more) > 5, more
+    finally:
+        sim.teardown()
+
+
 def _arc_polyline(r: float, deg: float, lead: float = 10.0) -> np.ndarray:
     th = np.radians(np.linspace(0.0, deg, 60))
     arc = np.column_stack([r * np.sin(th), r * (1.0 - np.cos(th))])

@@ -211,6 +211,43 @@ def test_reads_asked_ahead_do_not_wait_for_the_step(net, routes):
         t.teardown()
 
 
+def test_route_searches_through_the_worker_read_the_network_once(net, routes):
+    """The car's route searches (``cosim.driving``) read hundreds of lanes' links; through the
+    worker, every lane's links come in one call kept per network, and the searches' steps per
+    network, so that a search done again sends nothing (one route extension on the default run
+    took 2.2 s of calls across the pipe). The answers are the in-process ones."""
+    import random
+
+    from cosim.driving import _drivable_lanes, _links, escapes, route_without_turnarounds
+
+    t = TrafficProcess(net, routes, seed=1)
+    t.setup()
+    try:
+        s = t.sumo
+        for _ in range(5):
+            t.step()
+        cars = sorted(e for e in s.edge.getIDList() if not e.startswith(":") and _drivable_lanes(s, e))
+        rng = random.Random(5)
+        pairs = [(rng.choice(cars), rng.choice(cars)) for _ in range(6)]
+        got = [route_without_turnarounds(s, a, b, max_edges=3000) for a, b in pairs]
+        assert sum(r is not None for r in got) >= 2
+        ends = [escapes(s, a) for a, _ in pairs]
+        t.sync()
+        calls = t.calls
+        assert [route_without_turnarounds(s, a, b, max_edges=3000) for a, b in pairs] == got
+        assert [escapes(s, a) for a, _ in pairs] == ends
+        assert t.calls == calls, f"the searches done again sent {t.calls - calls} requests"
+        lanes = [f"{a}_0" for a, _ in pairs]
+        with SumoTraffic(net, routes, seed=1) as ref:
+            r = ref.sumo
+            assert [route_without_turnarounds(r, a, b, max_edges=3000) for a, b in pairs] == got
+            for lane in lanes:      # the same links, but for the lights' states of the moment
+                assert [lk[:5] + lk[6:] for lk in _links(s, lane)] == \
+                    [lk[:5] + lk[6:] for lk in r.lane.getLinks(lane)]
+    finally:
+        t.teardown()
+
+
 def test_worker_errors_are_one_line(net, tmp_path):
     garbage = tmp_path / "garbage.net.xml"
     garbage.write_text("<net><garbage")
