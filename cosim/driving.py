@@ -374,11 +374,29 @@ def is_tunnel(sim, edge: str) -> bool:
         return False
 
 
+_TURNAROUND_CACHE: dict = {}
+
+
 def _turnaround(sim, edge: str, nxt: str, after: str | None = None) -> bool:
     """Does the route's step edge -> nxt only have links the car cannot drive (turnarounds,
     turns far tighter than its full lock: :func:`_unturnable`), or enter a tunnel? With
     ``after`` (the edge after ``nxt``) and ``nxt`` shorter than :data:`CHAIN_EDGE_M`, also
-    when the two turns around ``nxt`` taken as one cannot be driven (:func:`_chain_unturnable`)."""
+    when the two turns around ``nxt`` taken as one cannot be driven (:func:`_chain_unturnable`).
+    Kept per network (a random route's draws check the same steps again and again)."""
+    try:
+        key = (_net_key(sim), edge, nxt, after)
+    except Exception:
+        return _turnaround_uncached(sim, edge, nxt, after)
+    out = _TURNAROUND_CACHE.get(key)
+    if out is None:
+        out = _turnaround_uncached(sim, edge, nxt, after)
+        if len(_TURNAROUND_CACHE) > 200_000:
+            _TURNAROUND_CACHE.clear()
+        _TURNAROUND_CACHE[key] = out
+    return out
+
+
+def _turnaround_uncached(sim, edge: str, nxt: str, after: str | None) -> bool:
     if is_tunnel(sim, nxt) and not is_tunnel(sim, edge):
         return True
     found = other = False

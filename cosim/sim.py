@@ -105,6 +105,8 @@ class Summary:
 
 LIFT_CHECK_M = 8.0          # a tile replaced within this distance of the car: is the car caught in its ground?
 MAX_SUMO_RESTARTS = 5      # a SUMO worker that keeps crashing ends the run
+EXTEND_AT_M = 120.0        # the route is extended when its path ends this near ahead of the car
+EXTEND_PREPARE_M = 400.0   # ... and its extension drawn ahead from this near (prepare_extension)
 
 
 class Simulation:
@@ -150,6 +152,7 @@ class Simulation:
         self._swap_adopting = None
         self._swap_hold = 0                # frames left without reloading stale tiles
         self._extend_retry_t = 0.0         # no route extension before this sim time
+        self._extension_asked = None       # (route, generator state) of the extension prepared
         self._setup_done = False
         self._gc_frozen = False
 
@@ -179,6 +182,7 @@ class Simulation:
                                     gui=cfg.sumo_gui, extra_args=["--max-num-vehicles", str(cap)] if cap else ())
             self.traffic = kind(self.world.net_file, self._routes, **self._traffic_kw)
             self.traffic.setup()
+            self._expect_network()
             self._pipelined = kind is not SumoTraffic
             self.progress("physics", 0.0, "loading the physics world")
             hz = cfg.physics_hz or RECOMMENDED_PHYSICS_HZ
@@ -222,6 +226,13 @@ class Simulation:
         self._setup_done = True
         self.progress("run", 0.0, "running")
         return self
+
+    def _expect_network(self) -> None:
+        """SUMO's worker: every lane's links (the route searches' table) asked for now, in the
+        background, not in the frame of the first route extension (50 ms on Helsinki)."""
+        expect = getattr(self.traffic, "expect", None)
+        if expect is not None:
+            expect([(("lane_links",), ())])
 
     @property
     def parallel_sumo(self) -> bool:
@@ -421,8 +432,12 @@ class Simulation:
         self._check_collisions()
         # route bookkeeping (not while SUMO swaps networks: the route is planned anew then)
         swapping = self._swap_next is not None or self._swap_adopting is not None
-        if self.goal_xy is None and self.path.length - s_here < 120.0 and not swapping:
-            self._extend_route()
+        if self.goal_xy is None and not swapping:
+            ahead = self.path.length - s_here
+            if ahead < EXTEND_AT_M:
+                self._extend_route()
+            elif ahead < EXTEND_PREPARE_M and self._extension_asked != (id(self.route), self._rng.getstate()):
+                self._prepare_extension()
         if self.route is not self._route_sent and not swapping:
             # SUMO's drivers see the ego coming at a junction only along its route there
             self._route_sent = self.route
@@ -474,6 +489,27 @@ class Simulation:
         """B8: every tile within the sensor range is built and loaded."""
         return self.physics.covered(x, y, self.cfg.sensor_range_m)
 
+    def _prepare_extension(self, state=None):
+        """Ask SUMO's side to draw the route's extension ahead, a little after each step
+        (``SumoTraffic.prepare_extension``): the frame that extends the route then takes the
+        answer instead of drawing it (60-130 ms in one frame on Helsinki)."""
+        state = state or self._rng.getstate()
+        self._extension_asked = (id(self.route), state)
+        prepare = getattr(self.traffic, "prepare_extension", None)
+        if prepare is None:
+            return
+        first = self._route_index_of_car()
+        try:
+            prepare(self.route, first, state)
+        except CosimError as e:
+            log.info("could not prepare the route's extension: %s", e)
+
+    def _route_index_of_car(self) -> int:
+        st = self.vehicle.state()
+        k, _, _ = self.path.project(st.x, st.y, self._path_idx)
+        cur_edge = self.path.lane_of[k][0].rsplit("_", 1)[0]
+        return self.route.index(cur_edge) if cur_edge in self.route else len(self.route) - 1
+
     def _extend_route(self):
         if self.t < self._extend_retry_t:
             return
@@ -515,14 +551,18 @@ class Simulation:
             return
         if len(more) < 2:
             # nothing to drive on to (every draw ended where it began): drawn again in 2 s,
-            # not every frame (each draw can take 0.4 s)
+            # not every frame (each draw can take 0.4 s), prepared meanwhile
             self._extend_retry_t = self.t + 2.0
+            self._prepare_extension()
             return
         if cur_edge in self.route:
             i = self.route.index(cur_edge)
             self.route = self.route[i:] + more[1:]
         else:   # inside a junction: continue from the next edge
             self.route = self.route[-1:] + more[1:]
+        ahead = getattr(self.traffic, "expect_route", None)
+        if ahead is not None:
+            ahead(more)         # (SUMO's worker: the network answers the path reads, in one batch)
         try:
             s = self.traffic.sumo
             self.path = self.path.extended(s, more)     # keeps the geometry the car is on
@@ -644,6 +684,7 @@ class Simulation:
     def _swap_taken(self, mapping: dict, plan, net_file):
         """The carried actors keep their bodies under their new ids; the route is taken."""
         self.mirror.rekey(mapping)
+        self._expect_network()
         self.replan(plan)
         log.info("SUMO swapped to %s, %d actors kept", Path(net_file).parent.parent.name, len(mapping))
 

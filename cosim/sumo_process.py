@@ -56,7 +56,7 @@ _STATIC = {
     # (not lane.getLinks: its tuples carry the links' current light states)
     ("sumo", "lane", n) for n in ("getShape", "getLength", "getInternalFoes", "getIDList",
                                   "getEdgeID", "getAllowed", "getDisallowed", "getWidth", "getLinkNumber",
-                                  "getFoes")
+                                  "getFoes", "getMaxSpeed")
 } | {
     ("sumo", "edge", n) for n in ("getLaneNumber", "getIDList", "getStreetName", "getFromJunction",
                                   "getToJunction", "getParameter")
@@ -498,6 +498,56 @@ class TrafficProcess(Component):
         if batch:
             self._post(("batch", tuple(batch), (), {}), tag=("expect", tuple(batch)))
 
+    def prepare_extension(self, route, first: int, rng_state, **kwargs) -> None:
+        """``SumoTraffic.prepare_extension`` in the worker, sent without waiting for its answer
+        (it only starts the draw: the worker draws on after each step)."""
+        if self._conn is None:
+            return
+        self._post(("call", ("prepare_extension",), (list(route), int(first), rng_state), kwargs), tag="posted")
+
+    def expect_route(self, edges) -> None:
+        """Ask ahead (``expect``) for the network answers a lane path along ``edges`` reads
+        (``cosim.driving.LanePath``): their lanes' and junction lanes' shapes, lengths, widths,
+        speeds and permissions, in one batch. A route extension read them one by one, 250
+        requests across the pipe (150 ms in one frame of the default run). Needs the lanes'
+        links (``lane_links``) cached; else nothing is asked."""
+        self._static_cache_fresh()
+        table = self._cache.get((("lane_links",), (), ()))
+        if table is None:
+            return
+        index = self._cache.get(("lanes_of_edge",))
+        if index is None:
+            # (the lanes of each edge; a junction's crossings under the key ("c", junction))
+            index = {}
+            for lane in table:
+                edge = lane.rsplit("_", 1)[0]
+                index.setdefault(edge, []).append(lane)
+                if lane.startswith(":") and "_c" in edge:
+                    junction, k = edge[1:].rsplit("_", 1)
+                    if k[:1] == "c" and k[1:].isdigit():
+                        index.setdefault(("c", junction), []).append(lane)
+            self._cache[("lanes_of_edge",)] = index
+        lanes, edges = set(), [e for e in dict.fromkeys(edges) if e in index]
+        for e in edges:
+            for lane in index[e]:
+                lanes.add(lane)
+                for link in table.get(lane, ()):
+                    lanes.add(link[0])
+                    via, guard = link[4], 0
+                    while via and via.startswith(":") and guard < 5:
+                        lanes.add(via)
+                        lanes.update(index.get(("c", via[1:].rsplit("_", 2)[0]), ()))   # its crossings
+                        nxt = table.get(via)
+                        via = (nxt[0][4] or nxt[0][0]) if nxt else None
+                        guard += 1
+        lp, ep = ("sumo", "lane"), ("sumo", "edge")
+        reads = [(lp + (m,), (ln,)) for ln in sorted(lanes)
+                 for m in ("getShape", "getLength", "getAllowed", "getDisallowed", "getWidth", "getMaxSpeed")]
+        reads += [(lp + ("getInternalFoes",), (ln,)) for ln in sorted(lanes) if ln.startswith(":")]
+        for e in {ln.rsplit("_", 1)[0] for ln in lanes if not ln.startswith(":")}:
+            reads += [(ep + ("getLaneNumber",), (e,)), (ep + ("getParameter",), (e, "tunnel"))]
+        self.expect(reads)
+
     def _call(self, path, args, kwargs):
         static = path in _STATIC
         if static:
@@ -509,6 +559,12 @@ class TrafficProcess(Component):
                 pass
             except TypeError:      # unhashable arguments
                 static = False
+            if static and not kwargs and (path, args) in self._asked:
+                self.sync()        # asked ahead (expect): answered with the batch in flight
+                try:
+                    return self._cache[key]
+                except KeyError:
+                    pass
         elif _is_read(path) and not kwargs:
             key = (path, args)
             if not self._lagged:        # lagged: first the state the step in flight started from
@@ -581,7 +637,8 @@ class TrafficProcess(Component):
             return None
         key = (("actors_near",), req)
         tags = list(self._inflight)
-        pending = "step" in tags and all(t == "step" or (isinstance(t, tuple) and t[0] == "expect") for t in tags)
+        pending = "step" in tags and all(t in ("step", "posted") or (isinstance(t, tuple) and t[0] == "expect")
+                                         for t in tags)
         if not (pending or (not tags and key in self._prefetched)):
             return None
         self._actors_radius = float(radius)

@@ -45,6 +45,7 @@ import re
 import shutil
 import sys
 import tempfile
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -59,6 +60,15 @@ from .driving import _onto_segments, _via_lanes
 log = logging.getLogger(__name__)
 
 EGO_ID = "ego"
+
+
+def _run_steps(gen):
+    """Run a generator to its end; its return value."""
+    while True:
+        try:
+            next(gen)
+        except StopIteration as e:
+            return e.value
 TMP_PREFIX = "cosim-sumo-"      # SUMO's folder for its logs: <tmp>/cosim-sumo-<pid>-*
 PROBE_ID = "cosim_probe"
 CONTEXT_MARGIN = 20.0   # m: front-bumper anchors vs centre distances (half a bus + half the ego)
@@ -248,6 +258,9 @@ SWAP_WARM_S = 1.0          # a new SUMO runs this long before actors are carried
 FOLLOWER_LOOK_M = 100.0     # how far behind a carried vehicle its follower is looked for at a swap
 # the ego's body reaching this far into a neighbouring lane makes that lane's follower (within
 # STRADDLE_LOOK_M) keep STRADDLE_GAP_M behind it (_straddle_yield)
+#: s of a prepared route extension drawn after each step (prepare_extension); a random route
+#: at a time, so a step can run over by one draw (0.1-5 ms)
+EXTENSION_STEP_BUDGET_S = 0.001
 STRADDLE_M = 0.3
 STRADDLE_AHEAD_S = 1.0     # ... or will reach, going on sideways as it moves now for this long
 STRADDLE_LOOK_M = 60.0
@@ -312,6 +325,7 @@ class SumoTraffic(Component):
         self._tmpdir: str | None = None
         self._time_offset = 0.0
         self._generation = 0
+        self._extension = None     # a route extension drawn a little after each step (prepare_extension)
         self._reset_run_state()
         self._ego_spec: dict | None = None
 
@@ -554,6 +568,8 @@ class SumoTraffic(Component):
             raise SimulationError(f"SUMO step failed at t={self.sim_time:.1f} s: "
                                   f"{self._sumo_error(e, self._err_log)}") from None
         self._after_step()
+        if self._extension is not None:
+            self._work_on_extension(EXTENSION_STEP_BUDGET_S)
 
     def _after_step(self):
         s, tc, st = self._sim, self._tc, self.stats
@@ -1260,15 +1276,60 @@ class SumoTraffic(Component):
         into ``route``, a random route from ``route[k]``, the generator's state). ``k`` is the
         last edge, unless every way on from there has a turn the car cannot make (the route
         ends in a one-way street down to a hairpin): then the latest of the ``back_max`` edges
-        before it, back to the car's, from which a way without one leaves."""
+        before it, back to the car's, from which a way without one leaves.
+
+        Drawn ahead by :meth:`prepare_extension` where it was asked for with the same route,
+        generator state and lengths (finished here if it is not done yet); the answer is the
+        same either way."""
+        job, self._extension = self._extension, None
+        if job is not None and job["key"] == (tuple(route), rng_state, min_len, back_max):
+            if job["result"] is None:
+                self._work_on_extension(None, job)
+            status, value = job["result"]
+            if status == "err":
+                raise value
+            if value[0] >= first or value[0] == len(route) - 1:
+                return value
+            # (drawn back to an edge the car has passed since: drawn again from here)
+        return _run_steps(self._extension_steps(route, first, rng_state, min_len, back_max))
+
+    def prepare_extension(self, route, first: int, rng_state, min_len: float = 800.0, back_max: int = 6) -> None:
+        """Start drawing ``random_extension(route, first, rng_state, ...)`` in the background:
+        :data:`EXTENSION_STEP_BUDGET_S` of it after each step. A route extension drawn all at
+        once took 60-130 ms in one frame (40 or more random routes, each checked for the turns
+        the car cannot make), against a frame of 3-4 ms."""
+        self._extension = {"key": (tuple(route), rng_state, min_len, back_max), "result": None,
+                           "steps": self._extension_steps(route, first, rng_state, min_len, back_max)}
+
+    def extension_ready(self) -> bool:
+        """A prepared extension has been drawn (for tests and benchmarks)."""
+        return self._extension is not None and self._extension["result"] is not None
+
+    def _work_on_extension(self, budget_s: float | None, job=None) -> None:
+        """Draw the prepared extension on, for ``budget_s`` seconds (None: to the end)."""
+        job = job or self._extension
+        if job is None or job["result"] is not None:
+            return
+        end = None if budget_s is None else time.perf_counter() + budget_s
+        try:
+            while end is None or time.perf_counter() < end:
+                next(job["steps"])
+        except StopIteration as e:
+            job["result"] = ("ok", e.value)
+        except SimulationError as e:
+            job["result"] = ("err", e)
+
+    def _extension_steps(self, route, first: int, rng_state, min_len: float, back_max: int):
+        """:meth:`random_extension`, a random route drawn at a time (a generator: its value
+        is the answer)."""
         rng = random.Random()
         rng.setstate(rng_state)
         n = len(route)
-        more, clean = self._draw_route(route[-1], rng, min_len)
+        more, clean = yield from self._draw_route_steps(route[-1], rng, min_len)
         if not clean:
             for k in range(n - 2, max(first, n - 1 - back_max) - 1, -1):
                 try:
-                    alt, ok = self._draw_route(route[k], rng, min_len)
+                    alt, ok = yield from self._draw_route_steps(route[k], rng, min_len)
                 except SimulationError:
                     continue
                 if ok:
@@ -1290,10 +1351,18 @@ class SumoTraffic(Component):
     def _draw_route(self, edge: str, rng: random.Random, min_len: float) -> tuple[list, bool]:
         """``random_route``'s draw with ``rng``: (edges, whether it has no tunnel and no turn
         the car cannot make)."""
+        return _run_steps(self._draw_route_steps(edge, rng, min_len))
+
+    def _draw_route_steps(self, edge: str, rng: random.Random, min_len: float):
+        """:meth:`_draw_route`, a destination at a time (a generator: its value is the answer)."""
         from .driving import escapes, is_tunnel, undrivable_steps, without_turnarounds
 
         s = self._require()
-        every = [e for e in s.edge.getIDList() if not e.startswith(":")]
+        key = (self._generation, str(self.net_file))
+        if getattr(self, "_every_key", None) != key:
+            self._every = [e for e in s.edge.getIDList() if not e.startswith(":")]
+            self._every_key = key
+        every = self._every
         best, fallback = [edge], None
         clean, clean_len = None, 0.0
         for k in range(80):
@@ -1301,6 +1370,8 @@ class SumoTraffic(Component):
             # can use: most edges are footways, rails and the like, with no route to them)
             if k >= 40 and (clean is not None or fallback is not None or len(best) >= 2):
                 break
+            if k:
+                yield
             to = rng.choice(every if k < 40 else self._car_edges())
             try:
                 r = s.simulation.findRoute(edge, to, vType="DEFAULT_VEHTYPE")
@@ -1596,6 +1667,7 @@ class SumoTraffic(Component):
         carry = self.swap_capture(keep_radius, center)
         self.teardown()
         self._car_edges_cache = None
+        self._extension = None
         self.net_file = Path(new_net)
         if isinstance(new_routes, (str, os.PathLike)):
             new_routes = [new_routes]

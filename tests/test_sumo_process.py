@@ -248,6 +248,34 @@ def test_route_searches_through_the_worker_read_the_network_once(net, routes):
         t.teardown()
 
 
+def test_a_route_extension_is_prepared_in_the_worker_without_waiting(net, routes):
+    """``TrafficProcess.prepare_extension`` is sent without waiting for its answer (no frame
+    waits for the worker to start the draw), and the worker draws after its steps: the
+    extension asked for later is the one SUMO in this process draws at once."""
+    import random
+
+    t = TrafficProcess(net, routes, seed=1)
+    t.setup()
+    try:
+        for _ in range(3):
+            t.step()
+        t.sync()
+        with SumoTraffic(net, routes, seed=1) as ref:
+            start = _start_lane(ref.sumo).rsplit("_", 1)[0]
+            route, _ = ref.random_route(start, random.Random(3).getstate(), min_len=300.0)
+            state = random.Random(5).getstate()
+            want = ref.random_extension(route, 0, state)
+        calls = t.calls
+        t.prepare_extension(route, 0, state)
+        assert t.calls == calls + 1 and t._inflight, "prepare_extension waited for its answer"
+        for _ in range(30):
+            t.step()
+        got = t.random_extension(route, 0, state)
+        assert (got[0], list(got[1])) == (want[0], list(want[1]))
+    finally:
+        t.teardown()
+
+
 def test_worker_errors_are_one_line(net, tmp_path):
     garbage = tmp_path / "garbage.net.xml"
     garbage.write_text("<net><garbage")

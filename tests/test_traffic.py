@@ -1198,3 +1198,42 @@ def test_random_routes_are_drawn_to_edges_a_car_can_use(traffic):
     rng = Unlucky(1)
     route, ok = t._draw_route(start, rng, 800.0)
     assert rng.n > 40 and len(route) >= 2 and route[-1] in cars
+
+
+def test_a_route_extension_drawn_ahead_after_the_steps_is_the_one_drawn_at_once(traffic):
+    """``prepare_extension`` draws a route's extension a little after each step (a draw took
+    60-130 ms in one frame of the default run); ``random_extension`` with the same route and
+    generator state then answers with it, the same answer as drawn at once, and draws nothing
+    itself. Another generator state is drawn afresh."""
+    import random
+
+    import cosim.traffic as tr
+
+    t = traffic()
+    s = t._require()
+    start = passenger_lanes(s, 50.0)[0][0].rsplit("_", 1)[0]
+    route, _ = t.random_route(start, random.Random(3).getstate(), min_len=300.0)
+    state = random.Random(7).getstate()
+    direct = t.random_extension(route, 0, state)
+    assert direct[0] == len(route) - 1 and direct[1][0] == route[-1] and len(direct[1]) >= 2
+    t.prepare_extension(route, 0, state)
+    steps = 0
+    while not t.extension_ready():
+        t.step()
+        steps += 1
+        assert steps < 2000, "the prepared extension was never finished"
+    draws = []
+    orig = t._draw_route_steps
+
+    def counted(*a, **k):
+        draws.append(a[0])
+        return orig(*a, **k)
+
+    t._draw_route_steps = counted
+    assert t.random_extension(route, 0, state) == direct and draws == []
+    # a different state (a retry after a draw with nothing to add): drawn here, not the prepared one
+    t.prepare_extension(route, 0, state)
+    other = random.Random(8).getstate()
+    assert t.random_extension(route, 0, other)[2] != direct[2] and draws
+    assert t._extension is None
+    assert tr.EXTENSION_STEP_BUDGET_S <= 0.002
