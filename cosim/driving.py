@@ -873,16 +873,19 @@ class LanePath:
         self.max_speed = np.array([limits[lane] for lane, _ in self.lane_of])
         return keep
 
-    def extended(self, sim, edges: list[str], keep_m: float = 300.0) -> "LanePath":
+    def extended(self, sim, edges: list[str], keep_m: float = 300.0, tail: "LanePath | None" = None) -> "LanePath":
         """This path continued along ``edges`` (``edges[0]`` is this path's last edge): the
         geometry before the last edge is kept as it is (the car is on it, perhaps halfway
         through a lane change), up to ``keep_m`` metres of it; the last edge is re-planned for
-        the continuation. Arc lengths start again from 0 at the first kept point."""
+        the continuation. Arc lengths start again from 0 at the first kept point. ``tail``:
+        ``LanePath(sim, edges, start_lane=self.last_lane)`` built already (where SUMO runs:
+        ``SumoTraffic.random_extension_path``)."""
         if not edges or edges[0] != self.edges[-1]:
             raise ValueError("an extension must start on the path's last edge")
         from dataclasses import replace
 
-        tail = LanePath(sim, edges, start_lane=self.last_lane)
+        if tail is None or list(tail.edges[:1]) != [edges[0]]:
+            tail = LanePath(sim, edges, start_lane=self.last_lane)
         i1 = self.last_edge_start
         i0 = int(np.searchsorted(self.s, self.s[i1] - keep_m)) if i1 > 0 else 0
         i0 = min(i0, i1)

@@ -228,11 +228,11 @@ class Simulation:
         return self
 
     def _expect_network(self) -> None:
-        """SUMO's worker: every lane's links (the route searches' table) asked for now, in the
-        background, not in the frame of the first route extension (50 ms on Helsinki)."""
-        expect = getattr(self.traffic, "expect", None)
-        if expect is not None:
-            expect([(("lane_links",), ())])
+        """A new network (setup, a swap): for random routes, SUMO's side works out their graph
+        a little after each step (``SumoTraffic.warm_routes``), so that the draws of the route
+        extensions find it done."""
+        if self.cfg.goal is None:
+            self.traffic.warm_routes()
 
     @property
     def parallel_sumo(self) -> bool:
@@ -500,7 +500,7 @@ class Simulation:
             return
         first = self._route_index_of_car()
         try:
-            prepare(self.route, first, state)
+            prepare(self.route, first, state, start_lane=self.path.last_lane)
         except CosimError as e:
             log.info("could not prepare the route's extension: %s", e)
 
@@ -520,7 +520,8 @@ class Simulation:
         cur_edge = lane.rsplit("_", 1)[0]
         first = self.route.index(cur_edge) if cur_edge in self.route else len(self.route) - 1
         try:
-            at, more, state = self.traffic.random_extension(self.route, first, self._rng.getstate())
+            at, more, state, tail = self.traffic.random_extension_path(self.route, first, self._rng.getstate(),
+                                                                       start_lane=self.path.last_lane)
             if at < len(self.route) - 1:
                 # every way on from the route's end has a turn the car cannot make: the way
                 # out from an earlier edge, the path planned again from the car (once out of
@@ -561,11 +562,11 @@ class Simulation:
         else:   # inside a junction: continue from the next edge
             self.route = self.route[-1:] + more[1:]
         ahead = getattr(self.traffic, "expect_route", None)
-        if ahead is not None:
+        if ahead is not None and tail is None:
             ahead(more)         # (SUMO's worker: the network answers the path reads, in one batch)
         try:
             s = self.traffic.sumo
-            self.path = self.path.extended(s, more)     # keeps the geometry the car is on
+            self.path = self.path.extended(s, more, tail=tail)     # keeps the geometry the car is on
             self._path_idx = self.path.project(st.x, st.y, 0, window=len(self.path.xy))[0]
         except (ValueError, CosimError) as e:
             log.info("could not extend the route: %s", e)

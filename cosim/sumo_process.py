@@ -505,6 +505,12 @@ class TrafficProcess(Component):
             return
         self._post(("call", ("prepare_extension",), (list(route), int(first), rng_state), kwargs), tag="posted")
 
+    def warm_routes(self, on: bool = True) -> None:
+        """``SumoTraffic.warm_routes`` in the worker, sent without waiting for its answer."""
+        if self._conn is None:
+            return
+        self._post(("call", ("warm_routes",), (bool(on),), {}), tag="posted")
+
     def expect_route(self, edges) -> None:
         """Ask ahead (``expect``) for the network answers a lane path along ``edges`` reads
         (``cosim.driving.LanePath``): their lanes' and junction lanes' shapes, lengths, widths,

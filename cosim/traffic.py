@@ -326,6 +326,7 @@ class SumoTraffic(Component):
         self._time_offset = 0.0
         self._generation = 0
         self._extension = None     # a route extension drawn a little after each step (prepare_extension)
+        self._warm = None          # the route graph worked out a little after each step (warm_routes)
         self._reset_run_state()
         self._ego_spec: dict | None = None
 
@@ -568,8 +569,10 @@ class SumoTraffic(Component):
             raise SimulationError(f"SUMO step failed at t={self.sim_time:.1f} s: "
                                   f"{self._sumo_error(e, self._err_log)}") from None
         self._after_step()
-        if self._extension is not None:
+        if self._extension is not None and self._extension["result"] is None:
             self._work_on_extension(EXTENSION_STEP_BUDGET_S)
+        elif self._warm is not None:
+            self._warm_up_routes(EXTENSION_STEP_BUDGET_S)
 
     def _after_step(self):
         s, tc, st = self._sim, self._tc, self.stats
@@ -1271,6 +1274,16 @@ class SumoTraffic(Component):
         a = int(np.argmin(dd))
         return float(np.concatenate([[0.0], np.cumsum(np.sqrt(L2))])[a] + t[a] * math.sqrt(L2[a]))
 
+    def random_extension_path(self, route, first: int, rng_state, start_lane: str, min_len: float = 800.0,
+                              back_max: int = 6):
+        """:meth:`random_extension`, and where it drives on from the route's last edge, the
+        lane path of the extension from ``start_lane`` (``cosim.driving.LanePath``, as
+        ``LanePath.extended`` builds it), else None: (k, edges, generator state, path). Built
+        here, where the draw just read the same lanes (in the main process, one extension's
+        path read 57 turns again across the pipe: 45 ms)."""
+        kw = dict(min_len=min_len, back_max=back_max, start_lane=start_lane)
+        return self._extension_answer(route, first, rng_state, kw)
+
     def random_extension(self, route, first: int, rng_state, min_len: float = 800.0, back_max: int = 6):
         """How to drive on at the end of ``route`` (the car on ``route[first]``): (index ``k``
         into ``route``, a random route from ``route[k]``, the generator's state). ``k`` is the
@@ -1281,8 +1294,11 @@ class SumoTraffic(Component):
         Drawn ahead by :meth:`prepare_extension` where it was asked for with the same route,
         generator state and lengths (finished here if it is not done yet); the answer is the
         same either way."""
+        return self._extension_answer(route, first, rng_state, dict(min_len=min_len, back_max=back_max))[:3]
+
+    def _extension_answer(self, route, first: int, rng_state, kw: dict):
         job, self._extension = self._extension, None
-        if job is not None and job["key"] == (tuple(route), rng_state, min_len, back_max):
+        if job is not None and job["key"] == (tuple(route), rng_state, tuple(sorted(kw.items()))):
             if job["result"] is None:
                 self._work_on_extension(None, job)
             status, value = job["result"]
@@ -1291,15 +1307,47 @@ class SumoTraffic(Component):
             if value[0] >= first or value[0] == len(route) - 1:
                 return value
             # (drawn back to an edge the car has passed since: drawn again from here)
-        return _run_steps(self._extension_steps(route, first, rng_state, min_len, back_max))
+        return _run_steps(self._extension_steps(route, first, rng_state, **kw))
 
-    def prepare_extension(self, route, first: int, rng_state, min_len: float = 800.0, back_max: int = 6) -> None:
-        """Start drawing ``random_extension(route, first, rng_state, ...)`` in the background:
-        :data:`EXTENSION_STEP_BUDGET_S` of it after each step. A route extension drawn all at
-        once took 60-130 ms in one frame (40 or more random routes, each checked for the turns
-        the car cannot make), against a frame of 3-4 ms."""
-        self._extension = {"key": (tuple(route), rng_state, min_len, back_max), "result": None,
-                           "steps": self._extension_steps(route, first, rng_state, min_len, back_max)}
+    def prepare_extension(self, route, first: int, rng_state, min_len: float = 800.0, back_max: int = 6,
+                          start_lane: str | None = None) -> None:
+        """Start drawing ``random_extension(route, first, rng_state, ...)`` (with
+        ``start_lane``, ``random_extension_path``) in the background: :data:`EXTENSION_STEP_BUDGET_S`
+        of it after each step. A route extension drawn all at once took 60-130 ms in one frame
+        (40 or more random routes, each checked for the turns the car cannot make), against a
+        frame of 3-4 ms."""
+        kw = dict(min_len=min_len, back_max=back_max)
+        if start_lane is not None:
+            kw["start_lane"] = start_lane
+        self._extension = {"key": (tuple(route), rng_state, tuple(sorted(kw.items()))), "result": None,
+                           "steps": self._extension_steps(route, first, rng_state, **kw)}
+
+    def warm_routes(self, on: bool = True) -> None:
+        """Work out the route graph's steps (``cosim.driving._drivable_nexts``: the turns the
+        car can make from each edge a car may use), :data:`EXTENSION_STEP_BUDGET_S` after each
+        step, so that a route drawn later finds them done: a draw on streets not searched
+        before took up to 100 ms in one step (Helsinki: about 0.3 s in all, over the first
+        300 steps). The answers are the same, warmed or not."""
+        self._warm = self._warm_steps() if on else None
+
+    def _warm_steps(self):
+        from .driving import _drivable_nexts
+
+        s = self._require()
+        for e in list(self._car_edges()):
+            try:
+                _drivable_nexts(s, e)
+            except self._exc:
+                pass
+            yield
+
+    def _warm_up_routes(self, budget_s: float) -> None:
+        end = time.perf_counter() + budget_s
+        try:
+            while time.perf_counter() < end:
+                next(self._warm)
+        except StopIteration:
+            self._warm = None
 
     def extension_ready(self) -> bool:
         """A prepared extension has been drawn (for tests and benchmarks)."""
@@ -1319,9 +1367,10 @@ class SumoTraffic(Component):
         except SimulationError as e:
             job["result"] = ("err", e)
 
-    def _extension_steps(self, route, first: int, rng_state, min_len: float, back_max: int):
-        """:meth:`random_extension`, a random route drawn at a time (a generator: its value
-        is the answer)."""
+    def _extension_steps(self, route, first: int, rng_state, min_len: float, back_max: int,
+                         start_lane: str | None = None):
+        """:meth:`random_extension` (with ``start_lane``, :meth:`random_extension_path`), a
+        random route drawn at a time (a generator: its value is the answer)."""
         rng = random.Random()
         rng.setstate(rng_state)
         n = len(route)
@@ -1333,8 +1382,17 @@ class SumoTraffic(Component):
                 except SimulationError:
                     continue
                 if ok:
-                    return k, alt, rng.getstate()
-        return n - 1, more, rng.getstate()
+                    return (k, alt, rng.getstate()) + ((None,) if start_lane is not None else ())
+        if start_lane is None:
+            return n - 1, more, rng.getstate()
+        tail = None
+        if len(more) >= 2:
+            yield
+            try:
+                tail = self.lane_path(more, start_lane=start_lane)
+            except (ValueError, self._exc):
+                tail = None          # (the main process builds it, and says why)
+        return n - 1, more, rng.getstate(), tail
 
     def random_route(self, edge: str, rng_state, min_len: float = 800.0):
         """A route from ``edge`` of at least ``min_len`` m to an edge drawn at random, through no
@@ -1668,6 +1726,7 @@ class SumoTraffic(Component):
         self.teardown()
         self._car_edges_cache = None
         self._extension = None
+        self._warm = None
         self.net_file = Path(new_net)
         if isinstance(new_routes, (str, os.PathLike)):
             new_routes = [new_routes]

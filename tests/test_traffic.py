@@ -1237,3 +1237,47 @@ def test_a_route_extension_drawn_ahead_after_the_steps_is_the_one_drawn_at_once(
     assert t.random_extension(route, 0, other)[2] != direct[2] and draws
     assert t._extension is None
     assert tr.EXTENSION_STEP_BUDGET_S <= 0.002
+
+
+def test_an_extension_comes_with_its_lane_path_and_the_route_graph_is_worked_out_after_the_steps(traffic):
+    """``random_extension_path`` gives the extension's lane path built where SUMO runs, the same
+    as the main process would build (``LanePath(sim, edges, start_lane=...)``); prepared ahead,
+    it comes with the prepared answer. ``warm_routes`` works out the route graph a little after
+    each step (not in one), and the steps it keeps are those worked out afresh."""
+    import random
+
+    from cosim import driving
+    from cosim.driving import LanePath
+
+    t = traffic()
+    s = t._require()
+    start = passenger_lanes(s, 50.0)[0][0].rsplit("_", 1)[0]
+    route, _ = t.random_route(start, random.Random(4).getstate(), min_len=300.0)
+    last_lane = LanePath(s, route).last_lane
+    state = random.Random(9).getstate()
+    at, more, after, tail = t.random_extension_path(route, 0, state, start_lane=last_lane)
+    assert (at, more, after) == t.random_extension(route, 0, state)
+    ref = LanePath(s, more, start_lane=last_lane)
+    assert tail is not None and tail.edges == ref.edges and np.allclose(tail.xy, ref.xy)
+    t.prepare_extension(route, 0, state, start_lane=last_lane)
+    for _ in range(2000):
+        if t.extension_ready():
+            break
+        t.step()
+    got = t.random_extension_path(route, 0, state, start_lane=last_lane)
+    assert got[:3] == (at, more, after) and np.allclose(got[3].xy, ref.xy)
+    # the route graph, a little after each step
+    driving._NEXTS_CACHE.clear()
+    t.warm_routes()
+    t.step()
+    assert t._warm is not None, "the whole graph was worked out in one step"
+    for _ in range(5000):
+        if t._warm is None:
+            break
+        t.step()
+    assert t._warm is None
+    cars = t._car_edges()
+    key = driving._net_key(s)
+    assert sum((key, e) in driving._NEXTS_CACHE for e in cars) == len(cars)
+    for e in cars[::max(1, len(cars) // 40)]:
+        assert driving._NEXTS_CACHE[(key, e)][0] == driving._drivable_nexts_uncached(s, e, None)[0]
