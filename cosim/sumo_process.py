@@ -48,6 +48,8 @@ from .workers import start_worker, worker_connection
 
 log = logging.getLogger(__name__)
 
+IDLE_WORK_S = 0.0005    # the worker's background work between two polls for a request
+
 # attributes shipped with every answer, read locally
 _STATE = ("stats", "sim_time", "running", "_generation", "_ego_in_sim", "_ego_off_network",
           "_ego_added")
@@ -210,8 +212,13 @@ def _serve(conn):
     root.setLevel(log_level)
     root.propagate = False
     t = SumoTraffic(*args, **kwargs)
+    t.work_when_idle = True
     while True:
         try:
+            # the work drawn ahead (a route's extension, the route graph) while no request
+            # waits: in the time the main process runs its frame, half a millisecond at a time
+            while t.background_work(IDLE_WORK_S) and not conn.poll():
+                pass
             op, path, a, kw = conn.recv()
         except (EOFError, OSError, KeyboardInterrupt):
             break
