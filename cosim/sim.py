@@ -561,9 +561,6 @@ class Simulation:
             self.route = self.route[i:] + more[1:]
         else:   # inside a junction: continue from the next edge
             self.route = self.route[-1:] + more[1:]
-        ahead = getattr(self.traffic, "expect_route", None)
-        if ahead is not None and tail is None:
-            ahead(more)         # (SUMO's worker: the network answers the path reads, in one batch)
         try:
             s = self.traffic.sumo
             self.path = self.path.extended(s, more, tail=tail)     # keeps the geometry the car is on

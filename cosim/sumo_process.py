@@ -217,7 +217,7 @@ def _serve(conn):
         try:
             # the work drawn ahead (a route's extension, the route graph) while no request
             # waits: in the time the main process runs its frame, half a millisecond at a time
-            while t.background_work(IDLE_WORK_S) and not conn.poll():
+            while not conn.poll() and t.background_work(IDLE_WORK_S):
                 pass
             op, path, a, kw = conn.recv()
         except (EOFError, OSError, KeyboardInterrupt):
@@ -517,49 +517,6 @@ class TrafficProcess(Component):
         if self._conn is None:
             return
         self._post(("call", ("warm_routes",), (bool(on),), {}), tag="posted")
-
-    def expect_route(self, edges) -> None:
-        """Ask ahead (``expect``) for the network answers a lane path along ``edges`` reads
-        (``cosim.driving.LanePath``): their lanes' and junction lanes' shapes, lengths, widths,
-        speeds and permissions, in one batch. A route extension read them one by one, 250
-        requests across the pipe (150 ms in one frame of the default run). Needs the lanes'
-        links (``lane_links``) cached; else nothing is asked."""
-        self._static_cache_fresh()
-        table = self._cache.get((("lane_links",), (), ()))
-        if table is None:
-            return
-        index = self._cache.get(("lanes_of_edge",))
-        if index is None:
-            # (the lanes of each edge; a junction's crossings under the key ("c", junction))
-            index = {}
-            for lane in table:
-                edge = lane.rsplit("_", 1)[0]
-                index.setdefault(edge, []).append(lane)
-                if lane.startswith(":") and "_c" in edge:
-                    junction, k = edge[1:].rsplit("_", 1)
-                    if k[:1] == "c" and k[1:].isdigit():
-                        index.setdefault(("c", junction), []).append(lane)
-            self._cache[("lanes_of_edge",)] = index
-        lanes, edges = set(), [e for e in dict.fromkeys(edges) if e in index]
-        for e in edges:
-            for lane in index[e]:
-                lanes.add(lane)
-                for link in table.get(lane, ()):
-                    lanes.add(link[0])
-                    via, guard = link[4], 0
-                    while via and via.startswith(":") and guard < 5:
-                        lanes.add(via)
-                        lanes.update(index.get(("c", via[1:].rsplit("_", 2)[0]), ()))   # its crossings
-                        nxt = table.get(via)
-                        via = (nxt[0][4] or nxt[0][0]) if nxt else None
-                        guard += 1
-        lp, ep = ("sumo", "lane"), ("sumo", "edge")
-        reads = [(lp + (m,), (ln,)) for ln in sorted(lanes)
-                 for m in ("getShape", "getLength", "getAllowed", "getDisallowed", "getWidth", "getMaxSpeed")]
-        reads += [(lp + ("getInternalFoes",), (ln,)) for ln in sorted(lanes) if ln.startswith(":")]
-        for e in {ln.rsplit("_", 1)[0] for ln in lanes if not ln.startswith(":")}:
-            reads += [(ep + ("getLaneNumber",), (e,)), (ep + ("getParameter",), (e, "tunnel"))]
-        self.expect(reads)
 
     def _call(self, path, args, kwargs):
         static = path in _STATIC
