@@ -420,11 +420,21 @@ def _turnaround_uncached(sim, edge: str, nxt: str, after: str | None) -> bool:
     return after is not None and _short(sim, nxt) and _chain_unturnable(sim, edge, nxt, after)
 
 
+#: the searches below yield after this many edges expanded (their ``*_steps`` generators: SUMO's
+#: worker draws routes between requests, and a step that comes waits for the piece in hand)
+SEARCH_PIECE = 200
+
+
 def route_without_turnarounds(sim, src: str, dst: str, max_edges: int = 20000) -> list[str] | None:
     """Shortest route by road from edge ``src`` to edge ``dst`` (both included) that uses no
     link the car cannot drive (a turnaround, a turn far tighter than its full lock:
     :func:`_unturnable`) and no tunnel (:func:`is_tunnel`; Dijkstra over lane links, expanded
     lazily), or None."""
+    return run_steps(_route_steps(sim, src, dst, max_edges))
+
+
+def _route_steps(sim, src: str, dst: str, max_edges: int = 20000):
+    """:func:`route_without_turnarounds`, yielding every :data:`SEARCH_PIECE` edges."""
     import heapq
 
     succ: dict = {}
@@ -448,6 +458,8 @@ def route_without_turnarounds(sim, src: str, dst: str, max_edges: int = 20000) -
         seen += 1
         if seen > max_edges:
             break
+        if seen % SEARCH_PIECE == 0:
+            yield
         for ne, w, via in nexts(e):
             nd = d + w
             if nd < dist.get(ne, float("inf")):
@@ -579,6 +591,11 @@ def escapes(sim, edge: str, reach_m: float = 1000.0, max_edges: int = 3000) -> b
     cannot drive (:func:`_drivable_nexts`)? False at the head of a one-way street whose every
     way out has a turn tighter than the car can make (or a tunnel): a route ending there leaves
     the car nowhere to go but through it."""
+    return run_steps(escapes_steps(sim, edge, reach_m, max_edges))
+
+
+def escapes_steps(sim, edge: str, reach_m: float = 1000.0, max_edges: int = 3000):
+    """:func:`escapes`, yielding every :data:`SEARCH_PIECE` edges."""
     import heapq
 
     dist = {edge: 0.0}
@@ -593,6 +610,8 @@ def escapes(sim, edge: str, reach_m: float = 1000.0, max_edges: int = 3000) -> b
         seen += 1
         if seen > max_edges:
             return True
+        if seen % SEARCH_PIECE == 0:
+            yield
         try:
             nx = _drivable_nexts(sim, e)
         except Exception:
@@ -612,6 +631,11 @@ def without_turnarounds(sim, edges: list[str]) -> tuple[list[str], list]:
     which the world does not have) replaced by the shortest detour without one (around a
     block), where there is one.
     Returns (edges, detours made as (from edge, to edge, edges added))."""
+    return run_steps(without_turnarounds_steps(sim, edges))
+
+
+def without_turnarounds_steps(sim, edges: list[str]):
+    """:func:`without_turnarounds`, yielding in its searches (:data:`SEARCH_PIECE`)."""
     out = [edges[0]] if edges else []
     detours = []
     i = 1
@@ -630,7 +654,7 @@ def without_turnarounds(sim, edges: list[str]) -> tuple[list[str], list]:
             while j < len(edges) - 1 and is_tunnel(sim, edges[j]):
                 j += 1
             tunnel = j > i or is_tunnel(sim, nxt)
-            found = _detour(sim, out, edges, i, j, tunnel=tunnel)
+            found = yield from _detour_steps(sim, out, edges, i, j, tunnel=tunnel)
             if found is not None:
                 back, jj, alt = found
                 start = out[len(out) - 1 - back]
@@ -643,7 +667,7 @@ def without_turnarounds(sim, edges: list[str]) -> tuple[list[str], list]:
                 # no way round near it (the tunnel rejoins the streets only further on, or runs
                 # on in pieces: since netgen 0.1.26 a tunnel is its own edges): the whole rest
                 # of the route by the car's own router, where it has one
-                alt = route_without_turnarounds(sim, cur, edges[-1])
+                alt = yield from _route_steps(sim, cur, edges[-1])
                 if alt and len(alt) >= 2 and not undrivable_steps(sim, alt):
                     out.extend(alt[1:])
                     detours.append((cur, edges[-1], len(alt) - 2))
@@ -675,10 +699,16 @@ def _detour(sim, out: list, edges: list, i: int, j: int, tunnel: bool, back_max:
     step the car cannot drive is no way around (the search avoids single links, not two turns
     around a short edge: Helsinki's way around the hairpin at junction 1319789487 came back
     to the same hairpin after 1.4 km)."""
+    return run_steps(_detour_steps(sim, out, edges, i, j, tunnel, back_max, ahead_max, max_search))
+
+
+def _detour_steps(sim, out: list, edges: list, i: int, j: int, tunnel: bool, back_max: int = 4,
+                  ahead_max: int = 4, max_search: int = 400):
+    """:func:`_detour`, yielding in its searches (:data:`SEARCH_PIECE`)."""
     for back in range(min(back_max, len(out) - 1) + 1):
         src = out[len(out) - 1 - back]
         for jj in range(j, min(len(edges), j + ahead_max + 1)):
-            alt = route_without_turnarounds(sim, src, edges[jj], max_edges=max_search)
+            alt = yield from _route_steps(sim, src, edges[jj], max_edges=max_search)
             if jj == j and not tunnel and back == 0:
                 if alt and len(alt) > 2 and not undrivable_steps(sim, alt):
                     return back, jj, alt

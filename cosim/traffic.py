@@ -1413,7 +1413,7 @@ class SumoTraffic(Component):
 
     def _draw_route_steps(self, edge: str, rng: random.Random, min_len: float):
         """:meth:`_draw_route`, a destination at a time (a generator: its value is the answer)."""
-        from .driving import escapes, is_tunnel, undrivable_steps, without_turnarounds
+        from .driving import escapes_steps, is_tunnel, undrivable_steps, without_turnarounds_steps
 
         s = self._require()
         key = (self._generation, str(self.net_file))
@@ -1447,8 +1447,8 @@ class SumoTraffic(Component):
             fixed = list(r.edges)
             bad = len(fixed) >= 2 and any(is_tunnel(s, e) for e in fixed)
             if len(fixed) >= 2 and not bad:
-                fixed = without_turnarounds(s, fixed)[0]
-                bad = bool(undrivable_steps(s, fixed)) or not escapes(s, fixed[-1])
+                fixed = (yield from without_turnarounds_steps(s, fixed))[0]
+                bad = bool(undrivable_steps(s, fixed)) or not (yield from escapes_steps(s, fixed[-1]))
             if r.length >= min_len:
                 if bad:
                     fallback = fallback or list(r.edges)
