@@ -689,8 +689,8 @@ def undrivable_steps(sim, edges: list[str]) -> list:
     return out
 
 
-def _detour(sim, out: list, edges: list, i: int, j: int, tunnel: bool, back_max: int = 4, ahead_max: int = 4,
-            max_search: int = 400):
+def _detour_steps(sim, out: list, edges: list, i: int, j: int, tunnel: bool, back_max: int = 4,
+                  ahead_max: int = 4, max_search: int = 400):
     """A way around the step ``out[-1] -> edges[i]`` (or the tunnel ``edges[i:j]``): from the
     route's last edge, else from up to ``back_max`` edges before it (a one-way street may
     have no other exit), to ``edges[j]``, else up to ``ahead_max`` edges further on. Returns
@@ -698,13 +698,8 @@ def _detour(sim, out: list, edges: list, i: int, j: int, tunnel: bool, back_max:
     Each search expands at most ``max_search`` edges (a block, not the city). A detour with a
     step the car cannot drive is no way around (the search avoids single links, not two turns
     around a short edge: Helsinki's way around the hairpin at junction 1319789487 came back
-    to the same hairpin after 1.4 km)."""
-    return run_steps(_detour_steps(sim, out, edges, i, j, tunnel, back_max, ahead_max, max_search))
-
-
-def _detour_steps(sim, out: list, edges: list, i: int, j: int, tunnel: bool, back_max: int = 4,
-                  ahead_max: int = 4, max_search: int = 400):
-    """:func:`_detour`, yielding in its searches (:data:`SEARCH_PIECE`)."""
+    to the same hairpin after 1.4 km). A generator that yields in its searches
+    (:data:`SEARCH_PIECE`); its value is the answer."""
     for back in range(min(back_max, len(out) - 1) + 1):
         src = out[len(out) - 1 - back]
         for jj in range(j, min(len(edges), j + ahead_max + 1)):

@@ -498,27 +498,26 @@ class Simulation:
         prepare = getattr(self.traffic, "prepare_extension", None)
         if prepare is None:
             return
-        first = self._route_index_of_car()
+        first = self._car_on_route()[3]
         try:
             prepare(self.route, first, state, start_lane=self.path.last_lane)
         except CosimError as e:
             log.info("could not prepare the route's extension: %s", e)
 
-    def _route_index_of_car(self) -> int:
+    def _car_on_route(self) -> tuple:
+        """(the car's state, the lane of the path under it, that lane's edge, the index of
+        that edge in the route: the route's last edge where the edge is not in it)."""
         st = self.vehicle.state()
         k, _, _ = self.path.project(st.x, st.y, self._path_idx)
-        cur_edge = self.path.lane_of[k][0].rsplit("_", 1)[0]
-        return self.route.index(cur_edge) if cur_edge in self.route else len(self.route) - 1
+        lane = self.path.lane_of[k][0]
+        cur_edge = lane.rsplit("_", 1)[0]
+        return st, lane, cur_edge, self.route.index(cur_edge) if cur_edge in self.route else len(self.route) - 1
 
     def _extend_route(self):
         if self.t < self._extend_retry_t:
             return
         last = self.route[-1]
-        st = self.vehicle.state()
-        k, s_here, _ = self.path.project(st.x, st.y, self._path_idx)
-        lane = self.path.lane_of[k][0]
-        cur_edge = lane.rsplit("_", 1)[0]
-        first = self.route.index(cur_edge) if cur_edge in self.route else len(self.route) - 1
+        st, lane, cur_edge, first = self._car_on_route()
         try:
             at, more, state, tail = self.traffic.random_extension_path(self.route, first, self._rng.getstate(),
                                                                        start_lane=self.path.last_lane)

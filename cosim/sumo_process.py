@@ -507,16 +507,18 @@ class TrafficProcess(Component):
 
     def prepare_extension(self, route, first: int, rng_state, **kwargs) -> None:
         """``SumoTraffic.prepare_extension`` in the worker, sent without waiting for its answer
-        (it only starts the draw: the worker draws on after each step)."""
-        if self._conn is None:
-            return
-        self._post(("call", ("prepare_extension",), (list(route), int(first), rng_state), kwargs), tag="posted")
+        (it only starts the draw: the worker draws on between requests)."""
+        self._post_call("prepare_extension", (list(route), int(first), rng_state), kwargs)
 
     def warm_routes(self, on: bool = True) -> None:
         """``SumoTraffic.warm_routes`` in the worker, sent without waiting for its answer."""
-        if self._conn is None:
-            return
-        self._post(("call", ("warm_routes",), (bool(on),), {}), tag="posted")
+        self._post_call("warm_routes", (bool(on),), {})
+
+    def _post_call(self, name: str, args: tuple, kwargs: dict) -> None:
+        """Send ``SumoTraffic.<name>(*args, **kwargs)`` without waiting for its answer (read,
+        and discarded, with the next answers; ``advance`` lets it through)."""
+        if self._conn is not None:
+            self._post(("call", (name,), args, kwargs), tag="posted")
 
     def _call(self, path, args, kwargs):
         static = path in _STATIC

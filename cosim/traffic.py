@@ -247,11 +247,11 @@ class TrafficStats:
 EGO_INSERT_DECEL = 4.5     # m/s², a vehicle behind the ego as it goes into SUMO must stop at this (_clear_ego_footprint)
 SWAP_WARM_S = 1.0          # a new SUMO runs this long before actors are carried into it
 FOLLOWER_LOOK_M = 100.0     # how far behind a carried vehicle its follower is looked for at a swap
-# the ego's body reaching this far into a neighbouring lane makes that lane's follower (within
-# STRADDLE_LOOK_M) keep STRADDLE_GAP_M behind it (_straddle_yield)
 #: s of a prepared route extension drawn after each step (prepare_extension); a random route
 #: at a time, so a step can run over by one draw (0.1-5 ms)
 EXTENSION_STEP_BUDGET_S = 0.001
+# the ego's body reaching this far into a neighbouring lane makes that lane's follower (within
+# STRADDLE_LOOK_M) keep STRADDLE_GAP_M behind it (_straddle_yield)
 STRADDLE_M = 0.3
 STRADDLE_AHEAD_S = 1.0     # ... or will reach, going on sideways as it moves now for this long
 STRADDLE_LOOK_M = 60.0
@@ -561,20 +561,17 @@ class SumoTraffic(Component):
             raise SimulationError(f"SUMO step failed at t={self.sim_time:.1f} s: "
                                   f"{self._sumo_error(e, self._err_log)}") from None
         self._after_step()
-        if self._extension is not None and self._extension["result"] is None:
-            self._work_on_extension(EXTENSION_STEP_BUDGET_S)
-        elif self._warm is not None and not self.work_when_idle:
-            self._warm_up_routes(EXTENSION_STEP_BUDGET_S)
+        self.background_work(EXTENSION_STEP_BUDGET_S, graph=not self.work_when_idle)
 
-    def background_work(self, budget_s: float) -> bool:
-        """Some of the work drawn ahead (a prepared extension, then the route graph), for
-        ``budget_s`` seconds; whether any is left. SUMO's worker process calls it while it
-        waits for the next request (``work_when_idle``): the route graph then costs the loop
-        nothing (after each step it made every frame of the first 100 s of a Kouvola drive 1 ms
-        longer)."""
+    def background_work(self, budget_s: float, graph: bool = True) -> bool:
+        """Some of the work drawn ahead (a prepared extension, then, with ``graph``, the route
+        graph), for ``budget_s`` seconds; whether any is left. SUMO's worker process calls it
+        while it waits for the next request (``work_when_idle``), and works on the route graph
+        only then: after each step it made every frame of the first 100 s of a Kouvola drive
+        1 ms longer."""
         if self._extension is not None and self._extension["result"] is None:
             self._work_on_extension(budget_s)
-        elif self._warm is not None:
+        elif self._warm is not None and graph:
             self._warm_up_routes(budget_s)
         return (self._extension is not None and self._extension["result"] is None) or self._warm is not None
 
