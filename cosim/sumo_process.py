@@ -76,13 +76,14 @@ _STATIC = {
 _NEEDS_LANE = {("sumo", "vehicle", n) for n in ("getLeader", "getFollower", "getNeighbors", "getNextTLS",
                                                 "getBestLanes", "getNextLinks", "getNextStops")}
 PREFETCH_KEEP = 3        # steps a read is asked for again after the caller last made it
+NOT_YET = object()       # TrafficProcess.answered: not in yet
 ACTORS_MARGIN_M = 10.0   # the actors sent with a step cover the radius asked for + this
 
 
 def _is_read(path) -> bool:
     """A call that only reads SUMO's state (safe to answer from the step's prefetch)."""
     name = path[-1]
-    return name.startswith(("get", "is", "has")) or name in ("actors_near", "tls_states", "ego_state",
+    return name.startswith(("get", "is", "has")) or name in ("actors_near", "actors_context", "tls_states", "ego_state",
                                                                "ego_next_tls")
 
 
@@ -120,9 +121,9 @@ class _LogForward(logging.Handler):
 
 
 def _plain_types() -> frozenset:
-    from cosim.traffic import ActorsSnapshot
+    from cosim.traffic import ActorsContext, ActorsSnapshot
 
-    return frozenset({str, int, float, bool, type(None), bytes, ActorsSnapshot})
+    return frozenset({str, int, float, bool, type(None), bytes, ActorsSnapshot, ActorsContext})
 
 
 _PLAIN: frozenset = frozenset()
@@ -354,6 +355,7 @@ class TrafficProcess(Component):
         self._cache: dict = {}
         self._cache_gen = None
         self._asked: set = set()   # network reads asked ahead (expect), not answered yet
+        self._asked_at: dict = {}  # answered()'s reads -> the step count when asked
         # reads answered with the step (path, args) -> (status, value), and the reads to ask
         # for: every read the caller made in one of the last PREFETCH_KEEP steps
         self._prefetched: dict = {}
@@ -483,6 +485,7 @@ class TrafficProcess(Component):
         if gen != self._cache_gen:
             self._cache.clear()
             self._asked.clear()
+            self._asked_at.clear()
             self._cache_gen = gen
 
     def expect(self, reads) -> None:
@@ -500,10 +503,26 @@ class TrafficProcess(Component):
                 if key + ((),) not in self._cache and key not in self._asked:
                     batch.append(key)
                     self._asked.add(key)
+                    self._asked_at[key] = self._steps
             elif _is_read(path):
                 self._prefetch_keys[key] = self._steps
         if batch:
             self._post(("batch", tuple(batch), (), {}), tag=("expect", tuple(batch)))
+
+    def answered(self, path: tuple, args: tuple):
+        """A network answer (``_STATIC``) without waiting: the cached value, or
+        :data:`NOT_YET` when it is not in yet: then it is asked for (:meth:`expect`) and in by
+        the next frame. An answer asked for in this frame is NOT_YET even if it came early,
+        so that a run repeats exactly whatever the timing. (A read that must not wait for the
+        step in flight, where a frame later is soon enough: a vehicle seen on a new lane.)"""
+        key = (path, tuple(args))
+        self._static_cache_fresh()
+        got = self._cache.get(key + ((),), NOT_YET)
+        if got is NOT_YET or self._asked_at.get(key, -1) >= self._steps:
+            if got is NOT_YET and key not in self._asked_at:     # (asked once: an error stays NOT_YET)
+                self.expect([key])
+            return NOT_YET
+        return got
 
     def prepare_extension(self, route, first: int, rng_state, **kwargs) -> None:
         """``SumoTraffic.prepare_extension`` in the worker, sent without waiting for its answer
@@ -591,7 +610,7 @@ class TrafficProcess(Component):
         self._actors_req = None
         if self._last_pose is not None and self._actors_radius is not None:
             self._actors_req = (self._last_pose[0], self._last_pose[1], self._actors_radius + ACTORS_MARGIN_M)
-            keys.append((("actors_near",), self._actors_req))
+            keys.append((("actors_context",), self._actors_req))
         pose, self._pending_pose = self._pending_pose or ((), {}), None
         self._post(("step", tuple(keys)) + pose, tag="step")
 
@@ -607,7 +626,7 @@ class TrafficProcess(Component):
         if req is None or self._conn is None or self._pending_pose is not None \
                 or math.hypot(x - req[0], y - req[1]) + radius > req[2]:
             return None
-        key = (("actors_near",), req)
+        key = (("actors_context",), req)
         tags = list(self._inflight)
         pending = "step" in tags and all(t in ("step", "posted") or (isinstance(t, tuple) and t[0] == "expect")
                                          for t in tags)
@@ -623,7 +642,7 @@ class TrafficProcess(Component):
             raise SimulationError("SUMO's worker sent no actors with its step")
         if hit[0] == "err":
             raise hit[1]
-        return hit[1].within(x, y, radius)
+        return hit[1].snapshot(x, y, radius)
 
     # --- the next network, started ahead --------------------------------------------------
     def prepare_network(self, new_net, new_routes=()) -> None:
@@ -801,10 +820,10 @@ class TrafficProcess(Component):
         req = self._actors_req
         if req is not None:
             self.sync()
-            hit = self._prefetched.get((("actors_near",), req))
+            hit = self._prefetched.get((("actors_context",), req))
             if hit is not None and hit[0] == "ok" and math.hypot(x - req[0], y - req[1]) + radius <= req[2]:
-                return hit[1].within(x, y, radius)
-        return self._call(("actors_near",), (x, y, radius), {})
+                return hit[1].snapshot(x, y, radius)
+        return self._call(("actors_context",), (x, y, radius), {}).snapshot(x, y, radius)
 
     def tls_states(self):
         return self._call(("tls_states",), (), {})

@@ -62,6 +62,7 @@ log = logging.getLogger(__name__)
 EGO_ID = "ego"
 TMP_PREFIX = "cosim-sumo-"      # SUMO's folder for its logs: <tmp>/cosim-sumo-<pid>-*
 PROBE_ID = "cosim_probe"
+VEHICLE_RECOUNT_STEPS = 10   # SUMO's vehicles are counted every this many steps (in between: departed - arrived)
 CONTEXT_MARGIN = 20.0   # m: front-bumper anchors vs centre distances (half a bus + half the ego)
 DEFAULT_CONTEXT_RADIUS = 150.0
 EGO_JOINT_NUDGE_M = 0.3       # a front bumper in the gap at a lane joint is mapped this far on (_across_joint)
@@ -228,6 +229,52 @@ class ActorsSnapshot:
                    z.copy(), z.copy(), z.copy(), z.copy(), z.copy(), z.copy(), np.zeros(0, dtype=object))
 
 
+# (TraCI's variable ids, the same in libsumo and traci: the keys of the context's results)
+_VAR_SPEED, _VAR_SLOPE, _VAR_POSITION, _VAR_ANGLE, _VAR_TYPE, _VAR_LANE_ID, _VAR_VEHICLE = 0x40, 0x36, 0x42, 0x43, 0x4F, 0x51, 0xC3
+
+
+@dataclass
+class ActorsContext:
+    """The actors around the ego as SUMO's context subscription gives them (``res``: id ->
+    {variable: value}), with the class and size of their types (``types``: (is a vehicle,
+    type id) -> (class, length, width, height)) and speeds to report instead of SUMO's
+    (``speeds``). Made where SUMO runs (``SumoTraffic.actors_context``); :meth:`snapshot`
+    turns it into the snapshot wherever it is needed."""
+    time: float
+    res: dict
+    types: dict
+    speeds: dict | None = None
+
+    def snapshot(self, x: float, y: float, radius: float) -> ActorsSnapshot:
+        """The vehicles and walking persons whose body centre is within ``radius`` m of (x, y),
+        the ego and persons riding in vehicles left out."""
+        types, speeds = self.types, self.speeds
+        ids, kind, lanes, rows = [], [], [], []
+        for aid, v in self.res.items():
+            pos = v.get(_VAR_POSITION)
+            if pos is None or aid == EGO_ID:
+                continue
+            riding = v.get(_VAR_VEHICLE)     # None: a vehicle; "": a person walking
+            if riding:
+                continue                     # riding: drawn as part of the vehicle
+            info = types[(riding is None, v[_VAR_TYPE])]
+            ids.append(aid)
+            kind.append(info[0])
+            lanes.append(v.get(_VAR_LANE_ID, ""))   # (for a person: a sidewalk, walking area or crossing)
+            speed = v[_VAR_SPEED] if speeds is None else speeds.get(aid, v[_VAR_SPEED])
+            rows.append((pos[0], pos[1], v[_VAR_ANGLE], info[1], info[2], info[3], speed, v.get(_VAR_SLOPE, 0.0)))
+        if not rows:
+            return ActorsSnapshot.empty(self.time)
+        a = np.array(rows, dtype=float).T
+        cx, cy = front_to_center(a[0], a[1], a[2], a[3])
+        keep = (cx - x) ** 2 + (cy - y) ** 2 <= radius * radius
+        ids, kind, lanes = (np.array(v, dtype=object) for v in (ids, kind, lanes))
+        if not keep.all():
+            a, cx, cy, ids, kind, lanes = a[:, keep], cx[keep], cy[keep], ids[keep], kind[keep], lanes[keep]
+        return ActorsSnapshot(self.time, ids, kind, cx, cy, sumo_angle_to_yaw(a[2]), a[3], a[4], a[5], a[6],
+                              a[7], lanes)
+
+
 @dataclass
 class TrafficStats:
     """Per-step counts and accumulated totals (never fatal)."""
@@ -344,6 +391,7 @@ class SumoTraffic(Component):
         self._exc: tuple = (Exception,)
         self._dims_cache: dict[str, tuple[float, float, float]] = {}
         self._vclass_cache: dict[str, tuple[str, float, float, float]] = {}
+        self._actor_types: dict[tuple, tuple[str, float, float, float]] = {}   # actors_near's
         self._held: dict[str, float] = {}  # pedestrians stopped for the ego: id -> their own pace
         self._straddle_held: set = set()    # vehicles kept behind an ego that straddles their lane
         self._straddle_lat: tuple = ("", 0.0)   # the ego's lane and lateral position at the last step
@@ -625,7 +673,10 @@ class SumoTraffic(Component):
                              c.collider, c.colliderType, c.victim, c.victimType, c.type)
         st.persons += int(r.get(tc.VAR_DEPARTED_PERSONS_NUMBER, 0)) - int(
             r.get(tc.VAR_ARRIVED_PERSONS_NUMBER, 0))
-        st.vehicles = s.vehicle.getIDCount() - (1 if self._ego_in_sim else 0)
+        if st.steps % VEHICLE_RECOUNT_STEPS == 0:   # (a count costs 45 us on a city: SUMO lists them)
+            st.vehicles = s.vehicle.getIDCount() - (1 if self._ego_in_sim else 0)
+        else:               # (between the counts: those that departed less those that arrived)
+            st.vehicles += sum(v != EGO_ID for v in departed) - sum(v != EGO_ID for v in arrived)
         st.max_vehicles = max(st.max_vehicles, st.vehicles)
         st.max_persons = max(st.max_persons, st.persons)
 
@@ -1158,48 +1209,58 @@ class SumoTraffic(Component):
         Uses the context subscription on the ego (one batched query per step); the ego itself
         and persons riding in vehicles are excluded.
         """
+        return self.actors_context(x, y, radius).snapshot(x, y, radius)
+
+    def actors_context(self, x: float, y: float, radius: float) -> "ActorsContext":
+        """SUMO's side of :meth:`actors_near`: the context subscription's results as libsumo
+        gives them, with the class and size of each type among them. SUMO's worker process
+        sends this with each step and the caller makes the snapshot (``ActorsContext.snapshot``):
+        the worker's own work bounds the loop at about 400 actors, the caller's less so."""
         self._require()
         tc = self._tc
         try:
             res = self._context_results(float(x), float(y), float(radius))
         except self._exc as e:
             raise SimulationError(f"SUMO actor query failed: {e}") from None
-        P, VEH, TYPE, SPEED, ANGLE = tc.VAR_POSITION, tc.VAR_VEHICLE, tc.VAR_TYPE, tc.VAR_SPEED, tc.VAR_ANGLE
-        SLOPE, LANE = tc.VAR_SLOPE, tc.VAR_LANE_ID
-        ids, kind, lanes, rows = [], [], [], []
+        VEH, TYPE = tc.VAR_VEHICLE, tc.VAR_TYPE
+        types = self._actor_types
+        infos = {}
         for aid, v in res.items():
-            pos = v.get(P)
-            if pos is None or aid == EGO_ID:
-                continue
-            if VEH in v:                     # a person
-                if v[VEH]:
-                    continue                 # riding: drawn as part of the vehicle
-                kind.append("person")
-                lanes.append(v.get(LANE, ""))    # (a sidewalk, walking area or crossing)
-                length, width, height = self._type_dims(v[TYPE], aid)
-            else:
-                vclass, length, width, height = self._vtype_info(v[TYPE], aid)
-                kind.append(vclass)
-                lanes.append(v.get(LANE, ""))
-            ids.append(aid)
-            speed = v[SPEED]
-            if self._moved_persons:
-                moved = self._moved_persons.get(aid)
-                if moved is not None:
-                    if math.hypot(pos[0] - moved[0], pos[1] - moved[1]) < 0.05:
-                        speed = moved[2]     # (SUMO's speed from the insertion jump: see _insert_kept)
-                    else:
-                        del self._moved_persons[aid]
-            rows.append((pos[0], pos[1], v[ANGLE], length, width, height, speed, v.get(SLOPE, 0.0)))
-        k = len(rows)
-        a = np.array(rows, dtype=float).T if k else np.zeros((8, 0))
-        ids, kind, lanes = (np.array(x, dtype=object) for x in (ids, kind, lanes))
-        cx, cy = front_to_center(a[0], a[1], a[2], a[3])
-        cx, cy = np.atleast_1d(cx), np.atleast_1d(cy)
-        keep = np.hypot(cx - x, cy - y) <= radius
-        return ActorsSnapshot(self.sim_time, ids[keep], kind[keep], cx[keep], cy[keep],
-                              np.atleast_1d(sumo_angle_to_yaw(a[2]))[keep], a[3][keep], a[4][keep],
-                              a[5][keep], a[6][keep], a[7][keep], lanes[keep])
+            key = (VEH not in v, v.get(TYPE))
+            if key not in infos and key[1] is not None:
+                info = types.get(key)
+                infos[key] = info if info is not None else self._actor_type(key, aid)
+        speeds = None
+        moved = self._moved_persons
+        if moved:
+            # (SUMO's speed of a person just carried across a network swap is that of its
+            # insertion jump until it walks on: see _insert_kept)
+            P = tc.VAR_POSITION
+            speeds = {}
+            for aid, m in list(moved.items()):
+                pos = res.get(aid, {}).get(P)
+                if pos is None:
+                    continue
+                if math.hypot(pos[0] - m[0], pos[1] - m[1]) < 0.05:
+                    speeds[aid] = m[2]
+                else:
+                    del moved[aid]
+        return ActorsContext(self.sim_time, res, infos, speeds)
+
+    def _actor_type(self, key: tuple, actor: str) -> tuple[str, float, float, float]:
+        """(class, length, width, height) of an actor's type (``key``: (is a vehicle, type
+        id)); kept for the next steps when SUMO knows the type (see :meth:`_vtype_info`,
+        :meth:`_type_dims`)."""
+        vehicle, type_id = key
+        if vehicle:
+            info = self._vtype_info(type_id, actor)
+            known = type_id in self._vclass_cache
+        else:
+            info = ("person",) + tuple(self._type_dims(type_id, actor))
+            known = type_id in self._dims_cache
+        if known:
+            self._actor_types[key] = info
+        return info
 
     def warm_up(self) -> None:
         """Run a SUMO just started on a network up to ``SWAP_WARM_S``, paying now what its first

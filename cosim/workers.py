@@ -23,7 +23,10 @@ def start_worker(module: str) -> tuple[subprocess.Popen, Connection]:
     root = str(Path(__file__).resolve().parents[1])
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     try:
-        proc = subprocess.Popen([sys.executable, "-m", module, str(child.fileno())],
+        # (-P, Python 3.11+: the working folder is not put first on the worker's path, so that
+        # it imports this copy of the package, not one that happens to lie in the working folder)
+        safe = ["-P"] if sys.version_info >= (3, 11) else []
+        proc = subprocess.Popen([sys.executable, *safe, "-m", module, str(child.fileno())],
                                 pass_fds=(child.fileno(),), env=env, cwd=os.getcwd())
     except OSError:
         parent.close()

@@ -437,3 +437,54 @@ def test_swap_that_takes_the_loops_step(net, tmp_path):
     # vehicle inside a junction on the neighbouring internal lane (they overlap at their start)
     print("advanced and two-step swap differ on", differ)
     assert len(differ) <= 1, differ
+
+
+def test_the_worker_imports_this_package_not_one_in_the_working_folder(net, routes, tmp_path, monkeypatch):
+    """SUMO's worker runs ``python -m cosim.sumo_process``; a folder named ``cosim`` in the
+    working folder (another checkout, say) must not be the one it imports: it would run other
+    code than the caller's (an A/B benchmark from another checkout compared the same code)."""
+    fake = tmp_path / "cosim"
+    fake.mkdir()
+    (fake / "__init__.py").write_text("raise ImportError('the working folder copy of cosim was imported')\n")
+    monkeypatch.chdir(tmp_path)
+    t = TrafficProcess(net, routes, seed=1)
+    t.setup()
+    try:
+        t.step()
+        t.sync()
+        assert t.sim_time == pytest.approx(0.1)
+    finally:
+        t.teardown()
+
+
+def test_a_network_answer_not_in_yet_is_asked_for_without_waiting(net, routes):
+    """``TrafficProcess.answered`` never waits for the step in flight: a lane's shape not in
+    yet is NOT_YET in the frame it is first asked for (even when the worker happens to have
+    answered already: runs repeat exactly), and in by the next frame; the same shape as SUMO
+    in this process gives."""
+    from cosim.sumo_process import NOT_YET
+
+    path = ("sumo", "lane", "getShape")
+    t = TrafficProcess(net, routes, seed=1)
+    t.setup()
+    try:
+        lane = _start_lane(t.sumo)
+        t.step()                            # (a step in flight, as in a frame)
+        waits = t.waits
+        assert t.answered(path, (lane,)) is NOT_YET
+        assert t.waits == waits             # nothing waited for
+        time.sleep(0.3)                     # (the worker is done with the step and the read)
+        assert t.answered(path, (lane,)) is NOT_YET     # still this frame
+        t.step()                            # the next frame
+        t.sync()
+        got = t.answered(path, (lane,))
+        assert got is not NOT_YET
+        with SumoTraffic(net, routes, seed=1) as ref:
+            assert np.allclose(np.asarray(got), np.asarray(ref.sumo.lane.getShape(lane)))
+        assert t.answered(path, ("no-such-lane_0",)) is NOT_YET
+        t.step()
+        t.sync()
+        assert t.answered(path, ("no-such-lane_0",)) is NOT_YET      # an error: never a value
+    finally:
+        t.teardown()
+

@@ -1281,3 +1281,19 @@ def test_an_extension_comes_with_its_lane_path_and_the_route_graph_is_worked_out
     assert sum((key, e) in driving._NEXTS_CACHE for e in cars) == len(cars)
     for e in cars[::max(1, len(cars) // 40)]:
         assert driving._NEXTS_CACHE[(key, e)][0] == driving._drivable_nexts_uncached(s, e, None)[0]
+
+
+def test_the_vehicle_count_between_recounts_is_sumos(dense, traffic):
+    """SUMO's vehicles are counted every VEHICLE_RECOUNT_STEPS steps (a count lists them all:
+    45 us a step on a city); in between, those that departed less those that arrived keep the
+    count SUMO's own, at every step."""
+    from cosim.traffic import VEHICLE_RECOUNT_STEPS
+
+    t = traffic(dense.route_files, seed=1)
+    s = t.sumo
+    seen = set()
+    for k in range(3 * VEHICLE_RECOUNT_STEPS + 7):
+        t.step()
+        assert t.stats.vehicles == s.vehicle.getIDCount(), f"step {k + 1}"
+        seen.add(t.stats.vehicles)
+    assert len(seen) > 3        # (the count changed on the way)
