@@ -34,8 +34,11 @@ COLLIDE = set(COLLIDE_CLASSES)
 #: (``<class>.npz``): Bullet builds a triangle mesh's tree at about 1.2 µs a face, and a whole
 #: class of a city tile (3,000-5,000 faces) took a frame 3-6 ms over its median of 2. (600 made
 #: 0.5-1 ms parts, but three times the bodies, which cost every step and lidar scan: Helsinki's
-#: frame median 1.9 -> 2.1 ms, the car's physics 0.42 -> 0.60 ms; 2,000: 0.46 ms)
-PART_FACES = 2000
+#: frame median 1.9 -> 2.1 ms, the car's physics 0.42 -> 0.60 ms; 2,000: 0.46 ms. Session 29,
+#: at about 400 actors, where the loop waits for SUMO's worker: 1,000 against 2,000, frames over
+#: 2 x the median 3 against 11-13 in 1,200, the largest part 3.3-3.7 against 5.1-5.2 ms, the car's
+#: physics 0.83 against 0.74 ms, hidden in the wait for the worker: the same frame median)
+PART_FACES = 1000
 COMPOUND_MAX = 16   # children per createCollisionShapeArray / createVisualShapeArray (PyBullet's limit)
 PREFAB_COLOURS = {"tree": (0.20, 0.45, 0.18, 1), "street_lamp": (0.35, 0.36, 0.38, 1),
                   "traffic_signal": (0.15, 0.15, 0.15, 1), "stop_sign": (0.80, 0.10, 0.10, 1),
