@@ -63,7 +63,10 @@ EGO_ID = "ego"
 TMP_PREFIX = "cosim-sumo-"      # SUMO's folder for its logs: <tmp>/cosim-sumo-<pid>-*
 PROBE_ID = "cosim_probe"
 VEHICLE_RECOUNT_STEPS = 10   # SUMO's vehicles are counted every this many steps (in between: departed - arrived)
-CONTEXT_MARGIN = 20.0   # m: front-bumper anchors vs centre distances (half a bus + half the ego)
+# m: front-bumper anchors vs centre distances (half a bus, 6 m, + half the ego, 2.25 m, + 1 m,
+# and a little for the ego's front in SUMO versus its centre asked about: _context_results
+# checks). The context's cost in SUMO's step goes with the actors in it (20 m: 10 % more)
+CONTEXT_MARGIN = 12.0
 DEFAULT_CONTEXT_RADIUS = 150.0
 EGO_JOINT_NUDGE_M = 0.3       # a front bumper in the gap at a lane joint is mapped this far on (_across_joint)
 STANDOFF_CHAIN = 2            # release_standoff: standing vehicles between the one taken out and the ego

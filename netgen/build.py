@@ -384,7 +384,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
                 if not nc.running():
                     break
                 buildings.prepare(k, tmp)
-        streams = _Streams(_parallel(), grid)
+        streams = _Streams(_parallel(), grid, q["road_step_m"])
         # -- the network, read while netconvert writes it --------------------------------
         progress("roads", 0.0, "meshing roads")
         gc_frozen = _gc_freeze()        # (again before the forks)
@@ -410,7 +410,8 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
             with T.stage("roads"):  # the levelling support: levelled here or in cosim-layers
                 roads = build_roads(net, natural.sample, q["road_step_m"],
                                     on_support=lambda pts, hw, car, tris, hold: streams.level(
-                                        pts, hw, car, tris, hold, T, buildings.lift), pinned=pinned)
+                                        pts, hw, car, tris, hold, T, buildings.lift), pinned=pinned,
+                                    surfaces=streams.surfaces)
             m_ = PLANES_MARGIN_M
             write_planes(tmp / PLANES_FILE, {j: p for j, p in roads.planes.items()
                                              if extent[0] + m_ <= p[0] <= extent[2] - m_
@@ -662,9 +663,11 @@ class _Streams:
     An error in a child comes back as the error of the build; leaving the ``with`` block
     early kills the children, and the kernel kills them if this process is killed."""
 
-    def __init__(self, parallel: bool, grid):
+    def __init__(self, parallel: bool, grid, road_step: float = 2.5):
         self.parallel = parallel
         self.grid = grid
+        self.road_step = road_step
+        self._surf_sender = None
         self.children = []
         self.lev = None             # the levelling's figures, where it ran
         self._in_child = self._have_terrain = False
@@ -676,6 +679,7 @@ class _Streams:
             self._ready = self.ctx.Event()
             self._claims = self.ctx.Array("i", 3)     # next road-tile unit, building chunk; leveller
             self._sup_r, self._sup_w = self.ctx.Pipe(duplex=False)     # the levelling support
+            self._surf_r, self._surf_w = self.ctx.Pipe(duplex=False)   # the roads' surfaces
         else:
             self._claims = [0, 0, 0]
 
@@ -764,6 +768,40 @@ class _Streams:
                                               daemon=True)
             self._receiver.start()
 
+    def send_surfaces(self, net) -> None:
+        """In cosim-layers, first thing: the junctions' and walking areas' polygons and their
+        triangulations (``roads.surface_meshes``: only the network needed), for this process's
+        roads (:meth:`surfaces`), which reaches them after fitting the roads' heights. Sent by a
+        thread, so that cosim-layers goes on to the scenery meanwhile."""
+        import pickle
+        import threading
+
+        from .roads import surface_meshes
+
+        if not (self.parallel and self._in_child):
+            return
+        data = pickle.dumps(surface_meshes(net, self.road_step), protocol=pickle.HIGHEST_PROTOCOL)
+        self._surf_sender = threading.Thread(target=self._surf_w.send_bytes, args=(data,), daemon=True)
+        self._surf_sender.start()
+
+    def surfaces_sent(self) -> None:
+        """In cosim-layers, before it ends: the surfaces are through the pipe."""
+        if self._surf_sender is not None:
+            self._surf_sender.join()
+
+    def surfaces(self):
+        """In this process: cosim-layers' ``roads.surface_meshes`` (waits for them), or None
+        without it (the roads make them themselves)."""
+        import pickle
+
+        if not self.parallel or self._in_child or not self.children:
+            return None
+        proc, res_r = self.children[0]
+        while not self._surf_r.poll(0.02):
+            if not proc.is_alive():
+                self._raise_from(proc, res_r)
+        return pickle.loads(self._surf_r.recv_bytes())
+
     def level_if_free(self, T: Timer, then=None) -> None:
         """In cosim-layers, once it has nothing else to do before the terrain: claim the
         levelling unless the roads' process already levels (it does when it has the support
@@ -826,6 +864,8 @@ def _layers(tmp: Path, chunks, net, splan, grid, buildings, streams: _Streams) -
 
     T = Timer()
     streams.receive_support()
+    with T.stage("surfaces"):       # (for the roads' process, which needs them in a while)
+        streams.send_surfaces(net)
     if callable(splan):
         with T.stage("scenery_plan"):
             splan = splan()
@@ -849,6 +889,7 @@ def _layers(tmp: Path, chunks, net, splan, grid, buildings, streams: _Streams) -
                 kinds[inst["kind"]] = kinds.get(inst["kind"], 0) + 1
     with T.stage("buildings_in_layers"):
         bfiles = buildings.write_claimed(tmp, streams) if streams.parallel else {}
+    streams.surfaces_sent()
     return {"chunks": chunks_out, "kinds": kinds, "buildings": bfiles, "timings": dict(T.t),
             "levelling": streams.lev}
 

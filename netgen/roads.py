@@ -1435,7 +1435,81 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     return int(moved.sum())
 
 
-def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | None = None) -> RoadGeometry:
+def surface_meshes(net, step: float) -> dict:
+    """The junctions' and walking areas' polygons and their triangulations in the plane
+    (constrained Delaunay, points every `step` m inside), which need nothing but the network:
+    ``polys``, ``pkind`` ("asphalt" or "sidewalk"), ``pid`` (junction or walking area id),
+    ``pel`` (element), and ``tri``: kind -> (the polygons' indices, :func:`_dense_triangulated`'s
+    V, vg, F, fg). :func:`build_roads` makes them, or takes them made in another process (the
+    build's second process makes them while this one fits the roads' heights)."""
+    gap_j, gap_lanes = junction_gaps(net)
+    cuts = {}
+    if gap_lanes:
+        for j, strip in zip(gap_j, _lane_strips(gap_lanes)):
+            cuts.setdefault(j, []).append(strip)
+        cuts = {j: shapely.union_all(v) for j, v in cuts.items()}
+    polys, pkind, pid, pel = [], [], [], []
+    under = underground_junctions(net)
+    # walking areas that a lane's strip cuts: the part of each the strips leave (all at once:
+    # most are valid polygons, and GEOS's repair is slow even on those)
+    wa_cut, wa_ids, wa_rings, wa_cuts = {}, [], [], []
+    for e in net.edges.values():
+        if e.function == "walkingarea" and e.lanes and len(e.lanes[0].shape) >= 3:
+            cut = cuts.get(e.id[1:e.id.rfind("_w")])
+            r = _open_ring(e.lanes[0].shape[:, :2]) if cut is not None else None
+            if r is not None:
+                wa_ids.append(e.id); wa_rings.append(r); wa_cuts.append(cut)
+    if wa_ids:
+        R_, rg_ = _concat(wa_rings)
+        wa = shapely.polygons(shapely.linearrings(R_, indices=rg_))
+        bad_ = ~shapely.is_valid(wa)
+        wa[bad_] = _repaired(wa[bad_])
+        wcut = np.array(wa_cuts, dtype=object)
+        hit = np.flatnonzero(shapely.area(shapely.intersection(wa, wcut)) > 0.5)
+        for k, g in zip(hit, shapely.difference(wa[hit], wcut[hit])):
+            wa_cut[wa_ids[k]] = _polygon_rings(g)
+    for j in net.junctions.values():
+        if j.type != "internal" and len(j.shape) >= 3 and j.id not in under:
+            polys.append(j.shape); pkind.append("asphalt"); pid.append(j.id); pel.append("junction")
+    for e in net.edges.values():
+        if e.function == "walkingarea" and under and e.id[1:e.id.rfind("_w")] in under:
+            continue
+        if e.function == "walkingarea" and e.lanes and len(e.lanes[0].shape) >= 3:
+            for shp in wa_cut.get(e.id, (e.lanes[0].shape,)):
+                polys.append(shp); pkind.append("sidewalk"); pid.append(e.id); pel.append("walkingarea")
+    # netconvert's polygon of a junction can cross itself (Monaco: 177 of its 2,272), and
+    # earcut then covered part of it (215 m2 of Monaco's junctions were bare ground; a road
+    # crossing cluster_25193390_6444966511 ran over a hole): such a junction is meshed as the
+    # polygons of its valid form
+    jk = [k for k in range(len(polys)) if pkind[k] == "asphalt"]
+    rings = [_open_ring(np.asarray(polys[k])[:, :2]) for k in jk]
+    has = [i for i, r in enumerate(rings) if r is not None]
+    if has:
+        R_, rg_ = _concat([rings[i] for i in has])
+        jp_ = shapely.polygons(shapely.linearrings(R_, indices=rg_))
+        bad_ = np.flatnonzero(~shapely.is_valid(jp_))
+        if len(bad_):
+            vparts, vof = shapely.get_parts(_repaired(jp_[bad_]), return_index=True)
+            keep_ = (shapely.get_type_id(vparts) == 3) & (shapely.area(vparts) > 0.05)
+            fixed: dict = {}
+            for g, b in zip(vparts[keep_], vof[keep_]):
+                fixed.setdefault(jk[has[bad_[b]]], []).append(np.asarray(g.exterior.coords)[:, :2])
+            for k in sorted((jk[has[b]] for b in bad_), reverse=True):
+                f = fixed.get(k, [])
+                polys[k:k + 1] = f
+                pkind[k:k + 1] = [pkind[k]] * len(f)
+                pid[k:k + 1] = [pid[k]] * len(f)
+                pel[k:k + 1] = [pel[k]] * len(f)
+
+    tri = {}
+    for kind in ("asphalt", "sidewalk"):
+        cand = [k for k in range(len(polys)) if pkind[k] == kind]
+        tri[kind] = (cand,) + tuple(_dense_triangulated([polys[k] for k in cand], step))
+    return {"polys": polys, "pkind": pkind, "pid": pid, "pel": pel, "tri": tri}
+
+
+def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | None = None,
+                surfaces=None) -> RoadGeometry:
     """Meshes for every SUMO edge, junction, walking area and crossing of `net`.
 
     `ground(x, y)` is the natural terrain height (vectorised). `on_support(pts, hw, car, tris,
@@ -1443,7 +1517,8 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     ``support_hw``, ``support_car``, ``support_tris``, ``support_hold``) as soon as it is complete, before the rest of the meshing (lane strips,
     markings, walking areas, crossings), so that the terrain can be levelled meanwhile.
     ``pinned``: planes of nodes to keep (:func:`_junction_planes`); the planes of all nodes
-    are in :attr:`RoadGeometry.planes`."""
+    are in :attr:`RoadGeometry.planes`. ``surfaces``: a function that returns
+    :func:`surface_meshes` for this `step` made elsewhere (or None: made here)."""
     geo = RoadGeometry(net=net)
     edges, lanes, lane_edge, refs = _road_lanes(net)
 
@@ -1651,71 +1726,16 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     # (a junction's vehicle lanes that leave its polygon get strips of their own, and its
     # walking areas give way to them: see junction_gaps)
     gap_j, gap_lanes = junction_gaps(net)
-    cuts = {}
-    if gap_lanes:
-        for j, strip in zip(gap_j, _lane_strips(gap_lanes)):
-            cuts.setdefault(j, []).append(strip)
-        cuts = {j: shapely.union_all(v) for j, v in cuts.items()}
-    polys, pkind, pid, pel = [], [], [], []
-    under = underground_junctions(net)
-    # walking areas that a lane's strip cuts: the part of each the strips leave (all at once:
-    # most are valid polygons, and GEOS's repair is slow even on those)
-    wa_cut, wa_ids, wa_rings, wa_cuts = {}, [], [], []
-    for e in net.edges.values():
-        if e.function == "walkingarea" and e.lanes and len(e.lanes[0].shape) >= 3:
-            cut = cuts.get(e.id[1:e.id.rfind("_w")])
-            r = _open_ring(e.lanes[0].shape[:, :2]) if cut is not None else None
-            if r is not None:
-                wa_ids.append(e.id); wa_rings.append(r); wa_cuts.append(cut)
-    if wa_ids:
-        R_, rg_ = _concat(wa_rings)
-        wa = shapely.polygons(shapely.linearrings(R_, indices=rg_))
-        bad_ = ~shapely.is_valid(wa)
-        wa[bad_] = _repaired(wa[bad_])
-        wcut = np.array(wa_cuts, dtype=object)
-        hit = np.flatnonzero(shapely.area(shapely.intersection(wa, wcut)) > 0.5)
-        for k, g in zip(hit, shapely.difference(wa[hit], wcut[hit])):
-            wa_cut[wa_ids[k]] = _polygon_rings(g)
-    for j in net.junctions.values():
-        if j.type != "internal" and len(j.shape) >= 3 and j.id not in under:
-            polys.append(j.shape); pkind.append("asphalt"); pid.append(j.id); pel.append("junction")
-    crossings = []
-    for e in net.edges.values():
-        if e.function in ("walkingarea", "crossing") and under and \
-                e.id[1:e.id.rfind("_w" if e.function == "walkingarea" else "_c")] in under:
-            continue
-        if e.function == "walkingarea" and e.lanes and len(e.lanes[0].shape) >= 3:
-            for shp in wa_cut.get(e.id, (e.lanes[0].shape,)):
-                polys.append(shp); pkind.append("sidewalk"); pid.append(e.id); pel.append("walkingarea")
-        elif e.function == "crossing" and e.lanes and len(e.lanes[0].shape) >= 2:
-            crossings.append(e)
-    # netconvert's polygon of a junction can cross itself (Monaco: 177 of its 2,272), and
-    # earcut then covered part of it (215 m2 of Monaco's junctions were bare ground; a road
-    # crossing cluster_25193390_6444966511 ran over a hole): such a junction is meshed as the
-    # polygons of its valid form
-    jk = [k for k in range(len(polys)) if pkind[k] == "asphalt"]
-    rings = [_open_ring(np.asarray(polys[k])[:, :2]) for k in jk]
-    has = [i for i, r in enumerate(rings) if r is not None]
-    if has:
-        R_, rg_ = _concat([rings[i] for i in has])
-        jp_ = shapely.polygons(shapely.linearrings(R_, indices=rg_))
-        bad_ = np.flatnonzero(~shapely.is_valid(jp_))
-        if len(bad_):
-            vparts, vof = shapely.get_parts(_repaired(jp_[bad_]), return_index=True)
-            keep_ = (shapely.get_type_id(vparts) == 3) & (shapely.area(vparts) > 0.05)
-            fixed: dict = {}
-            for g, b in zip(vparts[keep_], vof[keep_]):
-                fixed.setdefault(jk[has[bad_[b]]], []).append(np.asarray(g.exterior.coords)[:, :2])
-            for k in sorted((jk[has[b]] for b in bad_), reverse=True):
-                f = fixed.get(k, [])
-                polys[k:k + 1] = f
-                pkind[k:k + 1] = [pkind[k]] * len(f)
-                pid[k:k + 1] = [pid[k]] * len(f)
-                pel[k:k + 1] = [pel[k]] * len(f)
+    sm = surfaces() if surfaces is not None else None
+    if sm is None:
+        sm = surface_meshes(net, step)
+    polys, pkind, pid, pel, tri = sm["polys"], sm["pkind"], sm["pid"], sm["pel"], sm["tri"]
+    crossings = [e for e in net.edges.values()
+                 if e.function == "crossing" and e.lanes and len(e.lanes[0].shape) >= 2
+                 and not (under and e.id[1:e.id.rfind("_c")] in under)]
 
     def polygon_part(kind):
-        cand = [k for k in range(len(polys)) if pkind[k] == kind]
-        V2, vg, F, fg = _dense_triangulated([polys[k] for k in cand], step)
+        cand, V2, vg, F, fg = tri[kind]
         keep_c = np.unique(fg)                      # (shapes with triangles)
         if not len(keep_c):
             return None

@@ -237,6 +237,24 @@ def test_net_read_in_shape_batches_is_the_same_network(helsinki, monkeypatch):
     assert all(np.array_equal(j.shape, b.junctions[k].shape) for k, j in a.junctions.items())
 
 
+def test_a_build_on_one_core_writes_the_same_world(helsinki, tmp_path, monkeypatch):
+    """On two cores the build's second process makes the junctions' and walking areas'
+    surfaces (``roads.surface_meshes``), the scenery, and part of the tiles and buildings; on
+    one, this process makes all of it. The files are the same, byte for byte."""
+    import netgen.build as nb
+
+    out, w, cache = helsinki
+    monkeypatch.setattr(nb, "_parallel", lambda: False)
+    one = tmp_path / "one"
+    w1 = build_world(WorldConfig(preset="helsinki", chunks=1, out=str(one), cache_dir=str(cache)), force=True)
+    files = sorted(p.relative_to(out) for p in (out / "chunks").rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(one) for p in (one / "chunks").rglob("*") if p.is_file())
+    assert len(files) > 50
+    differ = [f for f in files if (out / f).read_bytes() != (one / f).read_bytes()]
+    assert not differ, f"{len(differ)} files differ, e.g. {differ[:3]}"
+    assert w1["counts"] == w["counts"]
+
+
 def test_build_leaves_the_garbage_collector_as_it_was(helsinki):
     """The build freezes the collector's view of its objects while it runs (see
     netgen.build._gc_freeze) and unfreezes it after, also when the caller froze objects."""
