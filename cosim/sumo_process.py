@@ -83,7 +83,7 @@ ACTORS_MARGIN_M = 10.0   # the actors sent with a step cover the radius asked fo
 def _is_read(path) -> bool:
     """A call that only reads SUMO's state (safe to answer from the step's prefetch)."""
     name = path[-1]
-    return name.startswith(("get", "is", "has")) or name in ("actors_near", "actors_context", "tls_states", "ego_state",
+    return name.startswith(("get", "is", "has")) or name in ("actors_context", "tls_states", "ego_state",
                                                                "ego_next_tls")
 
 

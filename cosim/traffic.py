@@ -394,7 +394,6 @@ class SumoTraffic(Component):
         self._exc: tuple = (Exception,)
         self._dims_cache: dict[str, tuple[float, float, float]] = {}
         self._vclass_cache: dict[str, tuple[str, float, float, float]] = {}
-        self._actor_types: dict[tuple, tuple[str, float, float, float]] = {}   # actors_near's
         self._held: dict[str, float] = {}  # pedestrians stopped for the ego: id -> their own pace
         self._straddle_held: set = set()    # vehicles kept behind an ego that straddles their lane
         self._straddle_lat: tuple = ("", 0.0)   # the ego's lane and lateral position at the last step
@@ -1226,13 +1225,12 @@ class SumoTraffic(Component):
         except self._exc as e:
             raise SimulationError(f"SUMO actor query failed: {e}") from None
         VEH, TYPE = tc.VAR_VEHICLE, tc.VAR_TYPE
-        types = self._actor_types
-        infos = {}
+        infos = {}          # (is a vehicle, type id) -> (class, length, width, height)
         for aid, v in res.items():
             key = (VEH not in v, v.get(TYPE))
             if key not in infos and key[1] is not None:
-                info = types.get(key)
-                infos[key] = info if info is not None else self._actor_type(key, aid)
+                infos[key] = self._vtype_info(key[1], aid) if key[0] else \
+                    ("person",) + tuple(self._type_dims(key[1], aid))
         speeds = None
         moved = self._moved_persons
         if moved:
@@ -1249,21 +1247,6 @@ class SumoTraffic(Component):
                 else:
                     del moved[aid]
         return ActorsContext(self.sim_time, res, infos, speeds)
-
-    def _actor_type(self, key: tuple, actor: str) -> tuple[str, float, float, float]:
-        """(class, length, width, height) of an actor's type (``key``: (is a vehicle, type
-        id)); kept for the next steps when SUMO knows the type (see :meth:`_vtype_info`,
-        :meth:`_type_dims`)."""
-        vehicle, type_id = key
-        if vehicle:
-            info = self._vtype_info(type_id, actor)
-            known = type_id in self._vclass_cache
-        else:
-            info = ("person",) + tuple(self._type_dims(type_id, actor))
-            known = type_id in self._dims_cache
-        if known:
-            self._actor_types[key] = info
-        return info
 
     def warm_up(self) -> None:
         """Run a SUMO just started on a network up to ``SWAP_WARM_S``, paying now what its first
