@@ -663,7 +663,7 @@ class _Streams:
     An error in a child comes back as the error of the build; leaving the ``with`` block
     early kills the children, and the kernel kills them if this process is killed."""
 
-    def __init__(self, parallel: bool, grid, road_step: float):
+    def __init__(self, parallel: bool, grid, road_step: float = 2.5):
         self.parallel = parallel
         self.grid = grid
         self.road_step = road_step
