@@ -216,8 +216,9 @@ def _serve(conn):
     t.work_when_idle = True
     while True:
         try:
-            # the work drawn ahead (a route's extension, the route graph) while no request
-            # waits: in the time the main process runs its frame, half a millisecond at a time
+            # the route graph worked out while no request waits: in the time the main process
+            # runs its frame, half a millisecond at a time (a route's extension is drawn after
+            # the steps: SumoTraffic.step)
             while not conn.poll() and t.background_work(IDLE_WORK_S):
                 pass
             op, path, a, kw = conn.recv()

@@ -37,6 +37,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import glob
+import itertools
 import logging
 import math
 import os
@@ -297,9 +298,15 @@ class TrafficStats:
 EGO_INSERT_DECEL = 4.5     # m/s², a vehicle behind the ego as it goes into SUMO must stop at this (_clear_ego_footprint)
 SWAP_WARM_S = 1.0          # a new SUMO runs this long before actors are carried into it
 FOLLOWER_LOOK_M = 100.0     # how far behind a carried vehicle its follower is looked for at a swap
-#: s of a prepared route extension drawn after each step (prepare_extension); a random route
-#: at a time, so a step can run over by one draw (0.1-5 ms)
+#: s of the route graph worked out after each step where SUMO runs in the caller's process
+#: (warm_routes; SUMO's worker does it while it waits for a request)
 EXTENSION_STEP_BUDGET_S = 0.001
+#: pieces of a prepared route extension drawn after each step (prepare_extension; a piece: a
+#: destination's route asked of SUMO, or up to SEARCH_PIECE edges of a search, or a turn
+#: measured). Counted, not timed: drawn at the same steps in every run, a run repeats exactly (a
+#: draw paced by the clock, in the worker's idle time too, changed SUMO's traffic from run to run
+#: of the same seed, though every draw gave the same route: 368-409 m driven in 60 s)
+EXTENSION_STEP_PIECES = 8
 # the ego's body reaching this far into a neighbouring lane makes that lane's follower (within
 # STRADDLE_LOOK_M) keep STRADDLE_GAP_M behind it (_straddle_yield)
 STRADDLE_M = 0.3
@@ -611,19 +618,20 @@ class SumoTraffic(Component):
             raise SimulationError(f"SUMO step failed at t={self.sim_time:.1f} s: "
                                   f"{self._sumo_error(e, self._err_log)}") from None
         self._after_step()
-        self.background_work(EXTENSION_STEP_BUDGET_S, graph=not self.work_when_idle)
-
-    def background_work(self, budget_s: float, graph: bool = True) -> bool:
-        """Some of the work drawn ahead (a prepared extension, then, with ``graph``, the route
-        graph), for ``budget_s`` seconds; whether any is left. SUMO's worker process calls it
-        while it waits for the next request (``work_when_idle``), and works on the route graph
-        only then: after each step it made every frame of the first 100 s of a Kouvola drive
-        1 ms longer."""
         if self._extension is not None and self._extension["result"] is None:
-            self._work_on_extension(budget_s)
-        elif self._warm is not None and graph:
+            self._work_on_extension(EXTENSION_STEP_PIECES)
+        elif not self.work_when_idle:
+            self.background_work(EXTENSION_STEP_BUDGET_S)
+
+    def background_work(self, budget_s: float) -> bool:
+        """The route graph (``warm_routes``) worked out on for ``budget_s`` seconds; whether any
+        is left. SUMO's worker process calls it while it waits for the next request
+        (``work_when_idle``): after each step it made every frame of the first 100 s of a
+        Kouvola drive 1 ms longer. (The graph's answers are the same however it is paced; a
+        prepared extension is drawn after the steps, :data:`EXTENSION_STEP_PIECES`.)"""
+        if self._warm is not None:
             self._warm_up_routes(budget_s)
-        return (self._extension is not None and self._extension["result"] is None) or self._warm is not None
+        return self._warm is not None
 
     def _after_step(self):
         s, tc, st = self._sim, self._tc, self.stats
@@ -1360,7 +1368,7 @@ class SumoTraffic(Component):
     def prepare_extension(self, route, first: int, rng_state, min_len: float = 800.0, back_max: int = 6,
                           start_lane: str | None = None) -> None:
         """Start drawing ``random_extension(route, first, rng_state, ...)`` (with
-        ``start_lane``, ``random_extension_path``) in the background: :data:`EXTENSION_STEP_BUDGET_S`
+        ``start_lane``, ``random_extension_path``) in the background: :data:`EXTENSION_STEP_PIECES`
         of it after each step. A route extension drawn all at once took 60-130 ms in one frame
         (40 or more random routes, each checked for the turns the car cannot make), against a
         frame of 3-4 ms."""
@@ -1397,14 +1405,13 @@ class SumoTraffic(Component):
         """A prepared extension has been drawn (for tests and benchmarks)."""
         return self._extension is not None and self._extension["result"] is not None
 
-    def _work_on_extension(self, budget_s: float | None, job=None) -> None:
-        """Draw the prepared extension on, for ``budget_s`` seconds (None: to the end)."""
+    def _work_on_extension(self, pieces: int | None, job=None) -> None:
+        """Draw the prepared extension on, for ``pieces`` pieces (None: to the end)."""
         job = job or self._extension
         if job is None or job["result"] is not None:
             return
-        end = None if budget_s is None else time.perf_counter() + budget_s
         try:
-            while end is None or time.perf_counter() < end:
+            for _ in itertools.count() if pieces is None else range(pieces):
                 next(job["steps"])
         except StopIteration as e:
             job["result"] = ("ok", e.value)
