@@ -273,6 +273,7 @@ def test_the_same_seed_repeats_the_traffic_around_the_car(helsinki_world):
     car from about 10 s on (a vehicle 0.3 mm elsewhere, then 7 against 8 mirrored, then the car
     368 against 409 m in 60 s), though every draw gave the same route. Two runs: the same
     actors at the same places at every step, and the same car."""
+
     def run():
         cfg = SimConfig(world_dir=str(helsinki_world), duration_s=60.0)    # (the main command's)
         sim = Simulation(cfg).setup()
