@@ -103,19 +103,37 @@ def _forward_points(P: np.ndarray) -> np.ndarray:
     lock): every route on from Mikonkatu was refused, and the default run stood there."""
     n = len(P)
     keep = np.ones(n, dtype=bool)
+    if n < 2:
+        return keep
+    # where the point before and the one before it were both kept (most of a path), point i
+    # is kept when it steps forward: those runs are taken whole (a path of 1,000 points took
+    # 5 ms point by point, in the step that drew the car's next route)
+    D = np.diff(P, axis=0)
+    dd = np.einsum("ij,ij->i", D, D)
+    forward = np.empty(n, dtype=bool)
+    forward[0] = True
+    forward[1] = dd[0] > 1e-6
+    forward[2:] = (dd[1:] > 1e-6) & (np.einsum("ij,ij->i", D[1:], D[:-1]) > 0.0)
+    not_forward = np.flatnonzero(~forward)
     last, prev = 0, None
     i = 1
     while i < n:
+        if last == i - 1 and prev == (i - 2 if i >= 2 else None):
+            k = int(np.searchsorted(not_forward, i))
+            j = int(not_forward[k]) if k < len(not_forward) else n
+            if j > i:               # i .. j-1 kept
+                prev, last, i = j - 2, j - 1, j
+                continue
         d = P[i] - P[last]
-        dd = d @ d
-        if dd <= 1e-6:
+        dd_i = d @ d
+        if dd_i <= 1e-6:
             keep[i] = False
             i += 1
             continue
         if prev is not None:
             u = P[last] - P[prev]
             if d @ u <= 0.0:
-                if dd < BACKSTEP_MAX_M ** 2:
+                if dd_i < BACKSTEP_MAX_M ** 2:
                     keep[i] = False
                     i += 1
                     continue
@@ -383,6 +401,10 @@ def is_tunnel(sim, edge: str) -> bool:
 
 
 _TURNAROUND_CACHE: dict = {}
+#: steps worked out (not found in _TURNAROUND_CACHE) so far: the route checks yield every
+#: TURN_PIECE of them (an 80-edge route checked on new streets took 8 ms in one piece)
+_TURN_WORK = [0]
+TURN_PIECE = 4
 
 
 def _turnaround(sim, edge: str, nxt: str, after: str | None = None) -> bool:
@@ -397,6 +419,7 @@ def _turnaround(sim, edge: str, nxt: str, after: str | None = None) -> bool:
         return _turnaround_uncached(sim, edge, nxt, after)
     out = _TURNAROUND_CACHE.get(key)
     if out is None:
+        _TURN_WORK[0] += 1
         out = _turnaround_uncached(sim, edge, nxt, after)
         if len(_TURNAROUND_CACHE) > 200_000:
             _TURNAROUND_CACHE.clear()
@@ -642,7 +665,11 @@ def without_turnarounds_steps(sim, edges: list[str]):
     out = [edges[0]] if edges else []
     detours = []
     i = 1
+    mark = _TURN_WORK[0]
     while i < len(edges):
+        if _TURN_WORK[0] - mark >= TURN_PIECE:
+            mark = _TURN_WORK[0]
+            yield
         cur, nxt = out[-1], edges[i]
         after = edges[i + 1] if i + 1 < len(edges) else None
         try:
@@ -671,7 +698,7 @@ def without_turnarounds_steps(sim, edges: list[str]):
                 # on in pieces: since netgen 0.1.26 a tunnel is its own edges): the whole rest
                 # of the route by the car's own router, where it has one
                 alt = yield from _route_steps(sim, cur, edges[-1])
-                if alt and len(alt) >= 2 and not undrivable_steps(sim, alt):
+                if alt and len(alt) >= 2 and not (yield from undrivable_steps_steps(sim, alt)):
                     out.extend(alt[1:])
                     detours.append((cur, edges[-1], len(alt) - 2))
                     break
@@ -682,8 +709,17 @@ def without_turnarounds_steps(sim, edges: list[str]):
 
 def undrivable_steps(sim, edges: list[str]) -> list:
     """The steps (edge, next edge) of a route the car cannot drive (see :func:`_turnaround`)."""
+    return run_steps(undrivable_steps_steps(sim, edges))
+
+
+def undrivable_steps_steps(sim, edges: list[str]):
+    """:func:`undrivable_steps`, yielding every :data:`TURN_PIECE` steps worked out."""
     out = []
+    mark = _TURN_WORK[0]
     for k, (a, b) in enumerate(zip(edges, edges[1:])):
+        if _TURN_WORK[0] - mark >= TURN_PIECE:
+            mark = _TURN_WORK[0]
+            yield
         try:
             if _turnaround(sim, a, b, edges[k + 2] if k + 2 < len(edges) else None):
                 out.append((a, b))
@@ -708,11 +744,11 @@ def _detour_steps(sim, out: list, edges: list, i: int, j: int, tunnel: bool, bac
         for jj in range(j, min(len(edges), j + ahead_max + 1)):
             alt = yield from _route_steps(sim, src, edges[jj], max_edges=max_search)
             if jj == j and not tunnel and back == 0:
-                if alt and len(alt) > 2 and not undrivable_steps(sim, alt):
+                if alt and len(alt) > 2 and not (yield from undrivable_steps_steps(sim, alt)):
                     return back, jj, alt
                 continue
             if alt and len(alt) >= 2 and not (back == 0 and jj == i and len(alt) == 2) \
-                    and not undrivable_steps(sim, alt):
+                    and not (yield from undrivable_steps_steps(sim, alt)):
                 return back, jj, alt
     return None
 
@@ -797,6 +833,10 @@ def _onto_segments(P, V, x, y):
     return t, dx, dy, dx - t * V[:, 0], dy - t * V[:, 1], L2
 
 
+#: edges (or junction lanes) of a path built in one piece (LanePath.build_steps)
+BUILD_PIECE = 3
+
+
 class LanePath:
     """A drivable centreline along a SUMO route. ``xy`` (n, 2), ``s`` arc length, per point the
     SUMO lane and edge it belongs to; ``stops``, ``crossings`` and ``max_speed`` (module doc)."""
@@ -804,6 +844,14 @@ class LanePath:
     STEP = 1.0
 
     def __init__(self, sim, edges: list[str], start_lane: str | None = None, start_pos: float = 0.0):
+        for _ in self.build_steps(sim, edges, start_lane, start_pos):
+            pass
+
+    def build_steps(self, sim, edges: list[str], start_lane: str | None = None, start_pos: float = 0.0):
+        """The construction (``__init__``) as a generator that yields every
+        :data:`BUILD_PIECE` edges or junction lanes, so that SUMO's worker can build a path in
+        pieces between steps (``SumoTraffic.random_extension_path``: an 800 m path in one
+        piece took 10-15 ms in one step)."""
         self.edges, self.detours = without_turnarounds(sim, list(edges))
         self._stay_in_start_lane(sim, start_lane, start_pos)
         pts, lanes = [], []
@@ -815,6 +863,8 @@ class LanePath:
         lanes_e = []
         lengths = []
         for i, e in enumerate(self.edges):
+            if i and i % BUILD_PIECE == 0:
+                yield
             cands = _drivable_lanes(sim, e)
             if not cands:
                 raise ValueError(f"edge {e} has no lane for cars")
@@ -870,7 +920,10 @@ class LanePath:
         change_specs = []          # (edge, from lane, to lane, their shapes) of each lane change
         stop_marks = []            # (point index in the unfiltered list, plan entry, internal length)
         n_pts = 0
+        yield
         for i, e in enumerate(self.edges):
+            if i and i % BUILD_PIECE == 0:
+                yield
             want = choose(i, entry)
             to_lane, via, st = best_link[i][want]
             plan.append((want, to_lane, via, st))
@@ -901,10 +954,12 @@ class LanePath:
                     n_pts += len(vs)
                 stop_marks.append((end_index, plan[i], internal))
                 entry = plan[i][1]
+        yield
         P = np.vstack(pts)
         keep = _forward_points(P)
         new_index = np.cumsum(keep) - 1
         self._set_geometry(P[keep], [lanes[k] for k in np.nonzero(keep)[0]], sim)
+        yield
         self._set_changes(change_specs)
         # stop lines and crossings
         self.stops: list[StopLine] = []
@@ -913,7 +968,8 @@ class LanePath:
             jun = junction_of(via) if via else ""
             self.stops.append(StopLine(s=float(self.s[j]), lane=ln, to_lane=to_lane, via=via or "", junction=jun,
                                        tls=(st or "") in TLS_STATES, initial_state=st or "", internal_length=internal))
-        self.crossings: list[CrossingOnPath] = self._find_crossings(sim)
+        yield
+        self.crossings: list[CrossingOnPath] = yield from self._find_crossings(sim)
         self.last_lane = plan[-1][0]                       # the lane the path ends on
         self.last_edge_start = int(new_index[last_start])  # index where the last edge begins
 
@@ -1122,13 +1178,16 @@ class LanePath:
         hu = np.unwrap(self.heading)
         return (hu[hi] - hu[lo]) / np.maximum(self.s[hi] - self.s[lo], 1e-6)
 
-    def _find_crossings(self, sim) -> list[CrossingOnPath]:
+    def _find_crossings(self, sim):
+        """The crossings the path goes over (a generator, as ``build_steps``: its value)."""
         out = []
         span: dict = {}            # junction lane -> (first, last) index of its path points
         for i, (lane, _) in enumerate(self.lane_of):
             if lane.startswith(":"):
                 span[lane] = (span[lane][0], i) if lane in span else (i, i)
-        for lane, (i0, i1) in span.items():
+        for n, (lane, (i0, i1)) in enumerate(span.items()):
+            if n and n % BUILD_PIECE == 0:
+                yield
             try:
                 foes = sim.lane.getInternalFoes(lane)
             except Exception:

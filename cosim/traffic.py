@@ -375,7 +375,7 @@ class SumoTraffic(Component):
         self._generation = 0
         self._extension = None     # a route extension drawn a little after each step (prepare_extension)
         self._warm = None          # the route graph worked out a little after each step (warm_routes)
-        self.work_when_idle = False  # SUMO's worker process: the route graph in background_work only
+        self.work_when_idle = False  # SUMO's worker process: the route graph in background_work only, work_after_step called by it
         self._reset_run_state()
         self._ego_spec: dict | None = None
 
@@ -618,6 +618,16 @@ class SumoTraffic(Component):
             raise SimulationError(f"SUMO step failed at t={self.sim_time:.1f} s: "
                                   f"{self._sumo_error(e, self._err_log)}") from None
         self._after_step()
+        if not self.work_when_idle:
+            self.work_after_step()
+
+    def work_after_step(self) -> None:
+        """What is drawn after each step: :data:`EXTENSION_STEP_PIECES` of a prepared route
+        extension, else (in the caller's process) a little of the route graph. SUMO's worker
+        calls it once it has answered the step (``work_when_idle``), so that the caller's frame
+        goes on meanwhile; before its answer, the last pieces of an extension made some steps
+        3-5 ms longer than SUMO's own. Either way, the same pieces come between the same two
+        steps in every run."""
         if self._extension is not None and self._extension["result"] is None:
             self._work_on_extension(EXTENSION_STEP_PIECES)
         elif not self.work_when_idle:
@@ -1415,7 +1425,7 @@ class SumoTraffic(Component):
                 next(job["steps"])
         except StopIteration as e:
             job["result"] = ("ok", e.value)
-        except SimulationError as e:
+        except Exception as e:      # (raised where the answer is asked for: _extension_answer)
             job["result"] = ("err", e)
 
     def _extension_steps(self, route, first: int, rng_state, min_len: float, back_max: int,
@@ -1440,7 +1450,7 @@ class SumoTraffic(Component):
         if len(more) >= 2:
             yield
             try:
-                tail = self.lane_path(more, start_lane=start_lane)
+                tail = yield from self._lane_path_steps(more, start_lane)
             except (ValueError, self._exc):
                 tail = None          # (the main process builds it, and says why)
         return n - 1, more, rng.getstate(), tail
@@ -1464,7 +1474,7 @@ class SumoTraffic(Component):
 
     def _draw_route_steps(self, edge: str, rng: random.Random, min_len: float):
         """:meth:`_draw_route`, a destination at a time (a generator: its value is the answer)."""
-        from .driving import escapes_steps, is_tunnel, undrivable_steps, without_turnarounds_steps
+        from .driving import escapes_steps, is_tunnel, undrivable_steps_steps, without_turnarounds_steps
 
         s = self._require()
         key = (self._generation, str(self.net_file))
@@ -1499,7 +1509,7 @@ class SumoTraffic(Component):
             bad = len(fixed) >= 2 and any(is_tunnel(s, e) for e in fixed)
             if len(fixed) >= 2 and not bad:
                 fixed = (yield from without_turnarounds_steps(s, fixed))[0]
-                bad = bool(undrivable_steps(s, fixed)) or not (yield from escapes_steps(s, fixed[-1]))
+                bad = bool((yield from undrivable_steps_steps(s, fixed))) or not (yield from escapes_steps(s, fixed[-1]))
             if r.length >= min_len:
                 if bad:
                     fallback = fallback or list(r.edges)
@@ -1518,10 +1528,8 @@ class SumoTraffic(Component):
             # wide into a building). At the end the car draws again (random_extension). Where
             # it cannot go on from anywhere on the way (up the one-way street already), it has
             # no other way than that step: the route all the same
-            from .driving import escapes
-
-            cut = self._drivable_head(fallback)
-            return (cut, False) if escapes(self._require(), cut[-1]) else (fallback, False)
+            cut = yield from self._drivable_head_steps(fallback)
+            return (cut, False) if (yield from escapes_steps(s, cut[-1])) else (fallback, False)
         if len(best) < 2:
             raise SimulationError(f"no route for the ego from edge {edge}")
         return best, False
@@ -1550,18 +1558,23 @@ class SumoTraffic(Component):
         """``route`` (around what it can go around: ``without_turnarounds``) up to its first
         step the car cannot drive or tunnel, and back from there to the last edge from which
         the car can drive on (``escapes``: not into a one-way street down to that step)."""
-        from .driving import escapes, is_tunnel, undrivable_steps, without_turnarounds
+        return _run_steps(self._drivable_head_steps(route))
+
+    def _drivable_head_steps(self, route: list):
+        """:meth:`_drivable_head` as a generator (yielding in its searches: its value is the
+        answer; in one piece it took up to 9.5 ms in the step that drew the car's next route)."""
+        from .driving import escapes_steps, is_tunnel, undrivable_steps_steps, without_turnarounds_steps
 
         s = self._require()
-        fixed = without_turnarounds(s, list(route))[0]
-        bad = undrivable_steps(s, fixed)
+        fixed = (yield from without_turnarounds_steps(s, list(route)))[0]
+        bad = yield from undrivable_steps_steps(s, fixed)
         end = len(fixed)
         if bad:
             end = next(k for k in range(len(fixed) - 1) if (fixed[k], fixed[k + 1]) == bad[0]) + 1
         tun = next((k for k in range(1, end) if is_tunnel(s, fixed[k])), None)
         if tun is not None:
             end = tun
-        while end > 1 and not escapes(s, fixed[end - 1]):
+        while end > 1 and not (yield from escapes_steps(s, fixed[end - 1])):
             end -= 1
         return fixed[:end]
 
@@ -1637,6 +1650,14 @@ class SumoTraffic(Component):
                 except (ValueError, SimulationError):
                     pass
         return self.plan_route(start[0], start[1], **kw)
+
+    def _lane_path_steps(self, edges: Sequence[str], start_lane: str | None):
+        """:meth:`lane_path` built in pieces (a generator: its value is the path)."""
+        from .driving import LanePath
+
+        path = object.__new__(LanePath)
+        yield from path.build_steps(self._require(), list(edges), start_lane=start_lane)
+        return path
 
     def lane_path(self, edges: Sequence[str], start_lane: str | None = None, start_pos: float = 0.0):
         """``cosim.driving.LanePath`` along ``edges`` on this SUMO's network. Built where SUMO

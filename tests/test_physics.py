@@ -145,7 +145,8 @@ def test_tile_loading_is_paced_by_how_near_the_missing_tiles_are(monaco_world):
 
 def test_tiles_load_a_part_at_a_time_within_the_budget(monaco_world):
     """With a budget smaller than a tile, ``update`` makes one part of a tile per call (the
-    terrain, each mesh class PART_FACES faces at a time, the scenery); a tile counts as loaded,
+    terrain's heights, then its body; each mesh class PART_FACES faces at a time; the
+    scenery); a tile counts as loaded,
     and ``covered``, only once all its parts are in, and it ends with the same bodies as a tile
     loaded at once."""
     w = monaco_world
@@ -156,9 +157,9 @@ def test_tiles_load_a_part_at_a_time_within_the_budget(monaco_world):
         xmin, ymin, xmax, ymax = w.tile_bounds(key)
         kx, ky = (xmin + xmax) / 2, (ymin + ymax) / 2          # (a disc inside that one tile)
         kinds_whole = whole.load_tile(key).kinds
-        n_parts = 2 + sum(-(-len(np.load(f.with_suffix(".npz"))["f"]) // PART_FACES)
+        n_parts = 3 + sum(-(-len(np.load(f.with_suffix(".npz"))["f"]) // PART_FACES)
                           for kind, f in w.tile_files(key).items() if kind in COLLIDE)
-        assert n_parts > 2 + sum(1 for kind in w.tile_files(key) if kind in COLLIDE)     # (some class in parts)
+        assert n_parts > 3 + sum(1 for kind in w.tile_files(key) if kind in COLLIDE)     # (some class in parts)
         calls = 0
         while key not in part.tiles:
             r = part.update(kx, ky, 10.0, budget_ms=0.0)    # one part per call
@@ -199,10 +200,14 @@ def test_tiles_load_a_part_at_a_time_within_the_budget(monaco_world):
         xmin, ymin, xmax, ymax = w.tile_bounds(other)
         cx, cy = (xmin + xmax) / 2, (ymin + ymax) / 2
         n0 = pb.getNumBodies(physicsClientId=part.client)
-        part.update(cx, cy, 1.0, unload_radius=2000.0, budget_ms=0.0)
+        part.update(cx, cy, 1.0, unload_radius=2000.0, budget_ms=0.0)    # its terrain's heights
+        hf = part._loading[other][0].hf_shape
+        assert hf >= 0 and pb.getNumBodies(physicsClientId=part.client) == n0
+        part.update(cx, cy, 1.0, unload_radius=2000.0, budget_ms=0.0)    # its terrain's body
         assert other in part._loading and pb.getNumBodies(physicsClientId=part.client) > n0
         part.update(5000.0, 5000.0, 1.0, unload_radius=10.0, budget_ms=0.0)
         assert not part._loading and not part.tiles and pb.getNumBodies(physicsClientId=part.client) == 0
+        assert any(hf in free for free in part._hf_free.values())          # (its shape back in the pool)
     finally:
         whole.teardown()
         part.teardown()
