@@ -25,10 +25,10 @@ has finished, and what is left runs on both cores. Stages (timed; the report and
    before the meshing has found the levelling support (``terrain_level``; the rest of the
    meshing goes on here meanwhile; else this process levels as soon as it has the support,
    as on a city whose scenery takes long to place), puts the scenery on the final terrain
-   and writes it; a second forked
-   process, started once the roads are meshed, writes road tiles. Road tiles and
+   and writes it, then cuts the buildings' passages over the roads and writes the
    buildings (lifted onto the levelled terrain: positions and bases into the prepared
-   files) are written piece by piece by whichever process is free.
+   files); a second forked process, started once the roads are meshed, writes road
+   tiles, piece by piece with this process, by whichever is free.
    The junction planes of the nodes 300 m or more inside the extent are written to
    ``road_planes.npz``; a build given a register (``heights``: a streamed window gets its
    world's) keeps the planes it holds and adds its own to it once the build is in place;
@@ -398,20 +398,23 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         with T.stage("roads"):      # the lanes by edge, used by both streams: made once, before the fork
             road_lanes(net)
             junction_gaps(net)
-        with T.stage("buildings_passages"):     # no building stands on a road (buildings.py)
-            buildings.cut_passages(carriageway_parts(net), natural.sample)
-        if streams.parallel:
-            buildings.share(streams.ctx)
+        # the buildings' passages under them (no building stands on a road: buildings.py) are
+        # cut where the buildings are written: with a second process, cosim-layers alone (from
+        # the network, beside the roads: 0.12 s of Helsinki's build that came before the fork)
+        in_layers = streams.parallel
+        if not in_layers:
+            with T.stage("buildings_passages"):
+                buildings.cut_passages(carriageway_parts(net), natural.sample)
         if gc_frozen:
             gc.freeze()
         with streams:
             streams.fork("cosim-layers", lambda: _layers(tmp, chunks, net, splan or scenery_plan, grid,
-                                                         buildings, streams))
+                                                         buildings, streams, natural.sample))
             with T.stage("roads"):  # the levelling support: levelled here or in cosim-layers
                 roads = build_roads(net, natural.sample, q["road_step_m"],
                                     on_support=lambda pts, hw, car, tris, hold: streams.level(
-                                        pts, hw, car, tris, hold, T, buildings.lift), pinned=pinned,
-                                    surfaces=streams.surfaces)
+                                        pts, hw, car, tris, hold, T, None if in_layers else buildings.lift),
+                                    pinned=pinned, surfaces=streams.surfaces)
             m_ = PLANES_MARGIN_M
             write_planes(tmp / PLANES_FILE, {j: p for j, p in roads.planes.items()
                                              if extent[0] + m_ <= p[0] <= extent[2] - m_
@@ -419,22 +422,22 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
             T.t["roads"] = round(T.t["roads"] - T.t.get("terrain_level", 0.0), 3)
             with T.stage("road_tiles_plan"):
                 road_tiles = _RoadTiles(chunks, bounds, roads, TILE_M)
-            streams.fork("cosim-tiles", lambda: (road_tiles.write_claimed(tmp, streams),
-                                                 buildings.write_claimed(tmp, streams)))
+            streams.fork("cosim-tiles", lambda: (road_tiles.write_claimed(tmp, streams), {}))
             progress("write", 0.0, "writing chunks")
             with T.stage("write"):
                 tiles = road_tiles.write_claimed(tmp, streams)          # what nobody has taken
                 with T.stage("terrain_wait"):
                     streams.wait_terrain()
                 entries = _write_terrain(tmp, chunks, bounds, grid)
-                bfiles = buildings.write_claimed(tmp, streams)
+                bfiles = {} if in_layers else buildings.write_claimed(tmp, streams)
             # netconvert writes the rest of its file (connections) meanwhile: only now check
             # that it succeeded (and cache its output)
             with T.stage("netconvert_wait"):
                 warnings = nc.finish(T)
             with T.stage("streams_wait"):
                 lout, (t2, b2) = streams.results(
-                    lambda: _layers(tmp, chunks, net, splan or scenery_plan, grid, buildings, streams),
+                    lambda: _layers(tmp, chunks, net, splan or scenery_plan, grid, buildings, streams,
+                                    natural.sample),
                     lambda: ([], {}))
     finally:
         nc.kill()       # only if still running: an error above
@@ -459,7 +462,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
     progress("write", 1.0, "chunks written")
     # -- counts and report ---------------------------------------------------------------
     fc = feats.counts()
-    nb, n_tag, n_lev, n_pass = buildings.counts()
+    nb, n_tag, n_lev, n_pass = lout["building_counts"]
     scen_counts = lout["kinds"]
     zs = grid.z
     world = {
@@ -647,18 +650,18 @@ class _Streams:
     """The work after netconvert, on both cores: forked processes and what they share.
 
     Three streams: this process meshes the roads and writes the terrain; a child forked
-    right after the network is read (``cosim-layers``) builds the carriageway, places the
+    right after the network is read (``cosim-layers``) makes the junctions' surfaces for
+    this process, builds the carriageway, cuts the buildings' passages, places the
     scenery, levels the terrain (the roads' levelling support comes through a pipe as soon
     as the meshing has it if cosim-layers is waiting for it, :meth:`level_if_free`; else
-    this process levels then, :meth:`level`) and writes the scenery; a
+    this process levels then, :meth:`level`) and writes the scenery and the buildings; a
     child forked once the roads are meshed (``cosim-tiles``) writes road tiles. Forked
     children inherit everything they need and return small dicts through a pipe. The
     levelled heights go to the other processes through shared memory (allocated before
-    the forks) once they are final (:meth:`wait_terrain`). The rest is
-    shared out as it comes: road tiles (by chunk and tile column; this process and
-    cosim-tiles) and buildings (by chunk; all three) are taken one unit at a time by
-    whoever is free (:meth:`next_index`). Without a second core (or without fork) nothing
-    is forked and this process does it all, in order.
+    the forks) once they are final (:meth:`wait_terrain`). Road tiles (by chunk and tile
+    column) are taken one unit at a time by whoever is free of this process and
+    cosim-tiles (:meth:`next_index`). Without a second core (or without fork) nothing is
+    forked and this process does it all, in order (the passages before the roads).
 
     An error in a child comes back as the error of the build; leaving the ``with`` block
     early kills the children, and the kernel kills them if this process is killed."""
@@ -842,8 +845,9 @@ class _Streams:
         raise BuildError(f"build process {proc.name} ended before its work was done")
 
     def next_index(self, what: str) -> int:
-        """The next unit of `what` ("roads" or "buildings") to write: 0, 1, 2, ... across
-        all processes, so that each unit is written once, by whoever was free."""
+        """The next unit of `what` ("roads" or "buildings"; "level": who levels) to write:
+        0, 1, 2, ... across all processes, so that each unit is written once, by whoever
+        was free."""
         c = ("roads", "buildings", "level").index(what)
         if not self.parallel:
             k = self._claims[c]
@@ -855,10 +859,12 @@ class _Streams:
             return k
 
 
-def _layers(tmp: Path, chunks, net, splan, grid, buildings, streams: _Streams) -> dict:
-    """The carriageway, the scenery placed on it and on the final terrain, written; then
-    building chunks that nobody has taken yet. Returns file names, counts, timings.
-    `splan` is the scenery plan, or the function that makes it."""
+def _layers(tmp: Path, chunks, net, splan, grid, buildings, streams: _Streams, ground) -> dict:
+    """The carriageway, the scenery placed on it and on the final terrain, written; then the
+    building chunks (with a second process, all of them, their passages cut here first: see
+    _build_into; else those that nobody has taken yet). Returns file names, counts, timings.
+    `splan` is the scenery plan, or the function that makes it; `ground` the natural
+    terrain's heights (vectorised)."""
     from .roads import carriageway_parts
     from .scenery import PolygonSet, finish_scenery, place_scenery, write_chunk_scenery
 
@@ -870,10 +876,15 @@ def _layers(tmp: Path, chunks, net, splan, grid, buildings, streams: _Streams) -
         with T.stage("scenery_plan"):
             splan = splan()
     with T.stage("carriageway"):
-        road = PolygonSet(carriageway_parts(net))
+        parts = carriageway_parts(net)
+        road = PolygonSet(parts)
     with T.stage("scenery_place"):
         placed = place_scenery(splan, road)
-    streams.level_if_free(T, then=buildings.lift)       # (the support comes from the roads)
+    # (the support comes from the roads: levelled here if it comes after this point)
+    streams.level_if_free(T)
+    if streams.parallel:
+        with T.stage("buildings_passages"):
+            buildings.cut_passages(parts, ground)
     with T.stage("scenery_terrain_wait"):
         streams.wait_terrain()
     with T.stage("scenery_finish"):
@@ -891,7 +902,7 @@ def _layers(tmp: Path, chunks, net, splan, grid, buildings, streams: _Streams) -
         bfiles = buildings.write_claimed(tmp, streams) if streams.parallel else {}
     streams.surfaces_sent()
     return {"chunks": chunks_out, "kinds": kinds, "buildings": bfiles, "timings": dict(T.t),
-            "levelling": streams.lev}
+            "levelling": streams.lev, "building_counts": buildings.counts()}
 
 
 # ---------------------------------------------------------------------------------------
@@ -909,8 +920,8 @@ def _write_terrain(tmp: Path, chunks, bounds, grid) -> list:
 
 
 class _Buildings:
-    """The planned buildings, lifted onto the final terrain and written chunk by chunk by
-    whichever process is free (:meth:`write_claimed`): per chunk one OBJ per tile (a group
+    """The planned buildings, lifted onto the final terrain and written chunk by chunk
+    (:meth:`write_claimed`; by cosim-layers where there is a second core): per chunk one OBJ per tile (a group
     per building, in the tile of its centroid), buildings.glb and buildings.json.
 
     What does not depend on the terrain (the tiles' face text, the GLB's indices and scene,
@@ -922,7 +933,6 @@ class _Buildings:
         self.layouts = None
         self.prepared = {}
         self.base = self.V = None
-        self.shared = None          # shared memory for base and V (see share)
 
     def counts(self) -> tuple:
         """(buildings, heights from tags, heights from levels, over a road) over all chunks."""
@@ -975,31 +985,14 @@ class _Buildings:
                                len(lay.vidx))
         self.prepared[k] = (tiles, glb, json_template(lay.bounds, recs, lay.stats))
 
-    def share(self, ctx) -> None:
-        """Before the forks: shared memory for the bases and lifted vertices, which the
-        process that levels the terrain fills (:meth:`lift`) before it says the terrain is
-        ready; the other processes then take them from there."""
-        self.shared = (ctx.RawArray("d", len(self.bplan.ids)), ctx.RawArray("d", self.bplan.vertices.size))
-
     def lift(self) -> None:
-        """Every building's base on the final terrain, and its vertices lifted by it (once;
-        from shared memory when another process made them)."""
+        """Every building's base on the final terrain, and its vertices lifted by it (once)."""
         from .buildings import base_heights, lifted_vertices
 
         if self.V is not None:
             return
-        if self.shared is not None and self.shared_ready:
-            self.base = np.frombuffer(self.shared[0], dtype=np.float64)
-            self.V = np.frombuffer(self.shared[1], dtype=np.float64).reshape(self.bplan.vertices.shape)
-            return
         self.base = base_heights(self.bplan, self.grid.sample)
         self.V = lifted_vertices(self.bplan, self.base)
-        if self.shared is not None:
-            np.frombuffer(self.shared[0], dtype=np.float64)[:] = self.base
-            np.frombuffer(self.shared[1], dtype=np.float64)[:] = self.V.ravel()
-            self.shared_ready = True
-
-    shared_ready = False            # set where lift() filled the shared memory, or learnt it was
 
     def write_chunk(self, tmp: Path, k: int) -> dict:
         self.lift()
@@ -1037,7 +1030,6 @@ class _Buildings:
                 return out
             if self.V is None:
                 streams.wait_terrain()
-                self.shared_ready = streams.parallel      # (filled before the terrain was ready)
             out[k] = self.write_chunk(tmp, k)
 
 
