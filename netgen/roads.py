@@ -259,16 +259,18 @@ def _top_surface_z(xy, parts, cell: float = 8.0, lowest: bool = False):
         return np.full(0, np.nan)
     # only the triangles that can hold a point: with a corner in a cell next to one of a
     # point's, or spanning more than a cell (one that holds a point and spans less has its
-    # corners within a cell of it; one whose corners' cells are 2 or more apart spans more)
-    near = _cell_keys(xy, cell, dilate=True)            # (sorted)
+    # corners within a cell of it; one whose corners' cells are 2 or more apart spans more).
+    # The cells near the points are a grid of flags over the points' extent (a lookup per
+    # corner: Helsinki's zebra crossings, 25,000 corners over 180,000 road faces, took 110 ms
+    # with sorted cell keys)
+    near = _CellGrid(np.floor(xy / cell).astype(np.int64), margin=1)
+    near.flags[near.cells[:, None] + near.around()[None, :]] = True
     T = []
     for p in parts:
         if not len(p.faces):
             continue
         ij = np.floor(p.vertices[:, :2] / cell).astype(np.int64)
-        vk = _keys(ij)
-        pos = np.minimum(np.searchsorted(near, vk), len(near) - 1)
-        vnear = near[pos] == vk
+        vnear = near.flag_at(ij)
         f = p.faces
         keep = vnear[f[:, 0]] | vnear[f[:, 1]] | vnear[f[:, 2]]
         rest = np.flatnonzero(~keep)
@@ -291,8 +293,8 @@ def _top_surface_z(xy, parts, cell: float = 8.0, lowest: bool = False):
     fine = cell / 2.0
     bmin = np.minimum(np.minimum(T[:, 0, :2], T[:, 1, :2]), T[:, 2, :2])
     bmax = np.maximum(np.maximum(T[:, 0, :2], T[:, 1, :2]), T[:, 2, :2])
-    pi, ti = _cell_pairs(np.floor(bmin / fine).astype(np.int64), np.floor(bmax / fine).astype(np.int64),
-                         _cell_keys(xy, fine))
+    pi, ti = _CellGrid(np.floor(xy / fine).astype(np.int64)).pairs(np.floor(bmin / fine).astype(np.int64),
+                                                                    np.floor(bmax / fine).astype(np.int64))
     x, y = xy[pi, 0], xy[pi, 1]
     eps = 1e-6
     inb = (x >= bmin[ti, 0] - eps) & (x <= bmax[ti, 0] + eps) & (y >= bmin[ti, 1] - eps) & (y <= bmax[ti, 1] + eps)
@@ -306,6 +308,58 @@ def _top_surface_z(xy, parts, cell: float = 8.0, lowest: bool = False):
     (np.minimum if lowest else np.maximum).at(top, pi[inside], z[inside])
     top[~np.isfinite(top)] = np.nan
     return top
+
+
+class _CellGrid:
+    """Integer cells ``ij`` (n, 2) of some points, on a dense grid over their extent (grown by
+    ``margin`` cells): ``flags`` (one per cell, False) for marking cells, and the points per
+    cell (``pairs``), found by indexing instead of sorted keys and binary searches."""
+
+    def __init__(self, ij, margin: int = 0):
+        self.lo = ij.min(axis=0) - margin
+        self.shape = ij.max(axis=0) + margin - self.lo + 1
+        self.cells = self.index(ij)
+        self._flags = None
+
+    def index(self, ij):
+        return (ij[:, 1] - self.lo[1]) * self.shape[0] + (ij[:, 0] - self.lo[0])
+
+    def around(self):
+        """The index offsets of a cell's 3 x 3 neighbourhood (margin 1 or more)."""
+        d = np.array([-1, 0, 1], dtype=np.int64)
+        return (d[:, None] * self.shape[0] + d[None, :]).ravel()
+
+    @property
+    def flags(self):
+        if self._flags is None:
+            self._flags = np.zeros(int(self.shape[0] * self.shape[1]), dtype=bool)
+        return self._flags
+
+    def flag_at(self, ij):
+        """``flags`` at the cells ``ij`` (False outside the grid)."""
+        out = np.zeros(len(ij), dtype=bool)
+        r = ij - self.lo
+        on = (r[:, 0] >= 0) & (r[:, 0] < self.shape[0]) & (r[:, 1] >= 0) & (r[:, 1] < self.shape[1])
+        out[on] = self.flags[r[on, 1] * self.shape[0] + r[on, 0]]
+        return out
+
+    def pairs(self, lo, hi):
+        """Pairs (point, box), in no set order: the point's cell is one of the cells
+        ``lo[b] .. hi[b]`` (both ends included) of box b."""
+        lo = np.maximum(lo, self.lo)                  # (cells off the grid hold no point)
+        hi = np.minimum(hi, self.lo + self.shape - 1)
+        nx, ny = hi[:, 0] - lo[:, 0] + 1, hi[:, 1] - lo[:, 1] + 1
+        nc = np.where((nx > 0) & (ny > 0), nx * ny, 0)
+        b = np.repeat(np.arange(len(lo)), nc)
+        k = np.arange(nc.sum()) - np.repeat(np.cumsum(nc) - nc, nc)
+        row, col = np.divmod(k, nx[b])
+        cell = self.index(lo)[b] + row * self.shape[0] + col
+        count = np.bincount(self.cells, minlength=int(self.shape[0] * self.shape[1]))
+        start = np.cumsum(count) - count
+        order = np.argsort(self.cells, kind="stable")
+        cnt = count[cell]
+        at = np.repeat(start[cell], cnt) + np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        return order[at], np.repeat(b, cnt)
 
 
 _KEY_BIAS = 1 << 30
@@ -338,17 +392,6 @@ def _cell_pairs(lo, hi, qkey):
 def _keys(ij):
     """One int64 per (i, j) cell (|i|, |j| < 2^30)."""
     return ((ij[:, 0] + _KEY_BIAS) << 32) + (ij[:, 1] + _KEY_BIAS)
-
-
-def _cell_keys(xy, cell: float, dilate: bool = False):
-    """One int64 per point: its square of a grid of `cell` metres (:func:`_keys`); with
-    `dilate`, the unique keys (sorted) of the points' squares and of the 8 around each."""
-    k = _keys(np.floor(xy / cell).astype(np.int64))
-    if not dilate:
-        return k
-    k = np.unique(k)
-    d = np.array([-1, 0, 1], dtype=np.int64)
-    return np.unique(k[:, None] + ((d[:, None] << 32) + d[None, :]).ravel()[None, :])
 
 
 def _part(kind, v, f, fg, n_groups, ids, elements, osm, centroids):
