@@ -296,6 +296,40 @@ def test_the_same_seed_repeats_the_traffic_around_the_car(helsinki_world):
     assert sum(map(len, aa)) > 1000          # (traffic around the car)
 
 
+def test_a_lane_shape_not_in_yet_is_left_for_the_next_frame(helsinki_world):
+    """SUMO in its worker: the autopilot asks for a lane's shape it has not read yet without
+    waiting for the step in flight (``Autopilot._lane_shape``; the wait cost a frame 1.6-2.7
+    ms). In the frame it is asked for it is not there (the conflict checks leave that lane
+    for the next frame); after the next step it is SUMO's shape, resampled every metre."""
+    from cosim.driving import _resample
+
+    sim = Simulation(SimConfig(world_dir=str(helsinki_world), traffic="none", seed=1,
+                               parallel_sumo=True)).setup()
+    try:
+        for _ in range(3):
+            sim.step()
+        drv = sim.driver
+        lane = next(ln for ln in sim.traffic.sumo.lane.getIDList()
+                    if not ln.startswith(":") and ln not in drv._lane_shapes)
+        assert drv._lane_shape(lane) is None
+        assert drv._lane_shape(lane) is None           # (asked once: still not in this frame)
+        sim.step()
+        Q, s = drv._lane_shape(lane)
+        P = np.asarray(sim.traffic.sumo.lane.getShape(lane), dtype=float)[:, :2]
+        assert np.array_equal(Q, _resample(P, 1.0)) and len(s) == len(Q) and s[0] == 0.0
+        assert abs(s[-1] - np.sum(np.hypot(*np.diff(P, axis=0).T))) < 0.05
+    finally:
+        sim.teardown()
+    # SUMO in this process: there at once
+    sim = Simulation(SimConfig(world_dir=str(helsinki_world), traffic="none", seed=1,
+                               parallel_sumo=False)).setup()
+    try:
+        sim.step()
+        assert sim.driver._lane_shape(lane) is not None
+    finally:
+        sim.teardown()
+
+
 def test_persons_carried_onto_a_walk_ending_in_a_junction_are_dropped(helsinki_world):
     """Helsinki, normal traffic (a repeatable run): at a window swap, carried pedestrians are
     matched onto a crossing with a walk ending on a junction's edge (first met with seed 1:
