@@ -152,6 +152,51 @@ def _forward_points(P: np.ndarray) -> np.ndarray:
     return keep
 
 
+#: a step between two points of a lane path this long or longer, sideways, is a jump: a lane
+#: change forced on an edge too short to blend it on (Helsinki, edge 30605639#1 of 0.2 m: 3.1 m
+#: to the right from the lane a junction leads onto to the only lane linked onward; blended on
+#: the edge, the path stepped 3 m sideways within 3 m, and the car, at full lock, ran 1.6 m off
+#: it through the junction after it; SUMO logged the ego colliding with a truck there)
+JUMP_MIN_M = 1.5
+#: ... eased over this much of the path after it (a cosine from the line before to the new lane)
+JUMP_EASE_M = 15.0
+#: a lane change on an edge shorter than this is not blended on it (a 3 m step sideways within
+#: a few metres): the path stays on the lane it came in on to the edge's end, and the step to
+#: the lane changed into is eased over the path after it (_ease_jumps)
+BLEND_MIN_M = 8.0
+
+
+def _ease_jumps(P: np.ndarray) -> np.ndarray:
+    """The chain of lane shapes ``P`` with each sideways jump (:data:`JUMP_MIN_M`) eased: the
+    points after it start on the line before it and reach their own lane within
+    :data:`JUMP_EASE_M` (its forward part stays). A step back (lanes joined at a very short
+    edge, a zig-zag) is left to :func:`_forward_points`."""
+    if len(P) < 3:
+        return P
+    d = np.diff(P, axis=0)
+    jumps = np.flatnonzero(np.hypot(d[:, 0], d[:, 1]) >= JUMP_MIN_M)
+    if not len(jumps):
+        return P
+    P = P.copy()
+    for k in jumps.tolist():
+        u = P[k] - P[max(0, k - 3)]
+        nu = math.hypot(u[0], u[1])
+        if nu < 1e-6:
+            continue
+        u = u / nu
+        J = P[k + 1] - P[k]
+        along = float(J @ u)
+        side = J - along * u
+        if along < 0.0 or math.hypot(side[0], side[1]) < JUMP_MIN_M:
+            continue
+        seg = np.hypot(*np.diff(P[k + 1:], axis=0).T)
+        dist = np.concatenate([[0.0], np.cumsum(seg)])
+        m = int(np.searchsorted(dist, JUMP_EASE_M))
+        w = 0.5 - 0.5 * np.cos(np.pi * dist[:m] / JUMP_EASE_M)
+        P[k + 1:k + 1 + m] -= side * (1.0 - w)[:, None]
+    return P
+
+
 def junction_of(internal_lane: str) -> str:
     """Junction id of an internal lane ``:J_k_i`` (junction ids may contain underscores)."""
     return internal_lane[1:].rsplit("_", 2)[0]
@@ -835,6 +880,8 @@ def _onto_segments(P, V, x, y):
 
 #: edges (or junction lanes) of a path built in one piece (LanePath.build_steps)
 BUILD_PIECE = 3
+#: points of a path before its last edge that its continuation is built after (LanePath.lead_in)
+LEAD_IN_POINTS = 3
 
 
 class LanePath:
@@ -843,15 +890,19 @@ class LanePath:
 
     STEP = 1.0
 
-    def __init__(self, sim, edges: list[str], start_lane: str | None = None, start_pos: float = 0.0):
-        for _ in self.build_steps(sim, edges, start_lane, start_pos):
+    def __init__(self, sim, edges: list[str], start_lane: str | None = None, start_pos: float = 0.0,
+                 lead_in=None):
+        for _ in self.build_steps(sim, edges, start_lane, start_pos, lead_in):
             pass
 
-    def build_steps(self, sim, edges: list[str], start_lane: str | None = None, start_pos: float = 0.0):
+    def build_steps(self, sim, edges: list[str], start_lane: str | None = None, start_pos: float = 0.0,
+                    lead_in=None):
         """The construction (``__init__``) as a generator that yields every
         :data:`BUILD_PIECE` edges or junction lanes, so that SUMO's worker can build a path in
         pieces between steps (``SumoTraffic.random_extension_path``: an 800 m path in one
-        piece took 10-15 ms in one step)."""
+        piece took 10-15 ms in one step). ``lead_in``: the last points before the path (of the
+        path it continues, :meth:`extended`), so that a step back right at its start is
+        dropped as within a path (:func:`_forward_points`)."""
         self.edges, self.detours = without_turnarounds(sim, list(edges))
         self._stay_in_start_lane(sim, start_lane, start_pos)
         pts, lanes = [], []
@@ -933,7 +984,10 @@ class LanePath:
                 shape_in = self._cut_from(shape_in, start_pos)
                 shape_want = self._cut_from(shape_want, start_pos)
             if entry != want and len(shape_in) >= 2 and len(shape_want) >= 2:
-                seg = self._blend(shape_in, shape_want)
+                # (on an edge too short to blend on, the lane in, and the step to the lane
+                # changed into eased over the path after it: _ease_jumps)
+                short = float(np.sum(np.hypot(*np.diff(shape_want, axis=0).T))) < BLEND_MIN_M
+                seg = shape_in if short and i + 1 < n_e else self._blend(shape_in, shape_want)
                 change_specs.append((e, entry, want, shape_in, shape_want))
             else:
                 seg = shape_want
@@ -955,9 +1009,18 @@ class LanePath:
                 stop_marks.append((end_index, plan[i], internal))
                 entry = plan[i][1]
         yield
-        P = np.vstack(pts)
-        keep = _forward_points(P)
-        new_index = np.cumsum(keep) - 1
+        P = _ease_jumps(np.vstack(pts))
+        if lead_in is not None and len(lead_in):
+            # (a continuation: its start knows where the path came from. Without, a zig-zag
+            # through overlapping junctions right at the join stayed in the path, 2.2 m back,
+            # and the car, at Helsinki's junction 142054948, read 1.8 m off it)
+            L = np.asarray(lead_in, dtype=float).reshape(-1, 2)
+            keep = _forward_points(np.vstack([L, P]))[len(L):]
+            if not keep.any():
+                keep[0] = True
+        else:
+            keep = _forward_points(P)
+        new_index = np.maximum(np.cumsum(keep) - 1, 0)     # (a point dropped at the start: the first kept)
         self._set_geometry(P[keep], [lanes[k] for k in np.nonzero(keep)[0]], sim)
         yield
         self._set_changes(change_specs)
@@ -1005,6 +1068,13 @@ class LanePath:
         self.max_speed = np.array([limits[lane] for lane, _ in self.lane_of])
         return keep
 
+    def lead_in(self) -> tuple:
+        """The points before the path's last edge that a continuation (:meth:`extended`) is
+        built after: ``lead_in`` of its tail, as plain tuples (sent to SUMO's worker, part of
+        a prepared extension's key)."""
+        i1 = self.last_edge_start
+        return tuple((float(x), float(y)) for x, y in self.xy[max(0, i1 - LEAD_IN_POINTS):i1])
+
     def extended(self, sim, edges: list[str], keep_m: float = 300.0, tail: "LanePath | None" = None) -> "LanePath":
         """This path continued along ``edges`` (``edges[0]`` is this path's last edge): the
         geometry before the last edge is kept as it is (the car is on it, perhaps halfway
@@ -1017,7 +1087,7 @@ class LanePath:
         from dataclasses import replace
 
         if tail is None or list(tail.edges[:1]) != [edges[0]]:
-            tail = LanePath(sim, edges, start_lane=self.last_lane)
+            tail = LanePath(sim, edges, start_lane=self.last_lane, lead_in=self.lead_in())
         i1 = self.last_edge_start
         i0 = int(np.searchsorted(self.s, self.s[i1] - keep_m)) if i1 > 0 else 0
         i0 = min(i0, i1)

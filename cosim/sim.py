@@ -500,7 +500,7 @@ class Simulation:
             return
         first = self._car_on_route()[3]
         try:
-            prepare(self.route, first, state, start_lane=self.path.last_lane)
+            prepare(self.route, first, state, start_lane=self.path.last_lane, lead_in=self.path.lead_in())
         except CosimError as e:
             log.info("could not prepare the route's extension: %s", e)
 
@@ -520,7 +520,8 @@ class Simulation:
         st, lane, cur_edge, first = self._car_on_route()
         try:
             at, more, state, tail = self.traffic.random_extension_path(self.route, first, self._rng.getstate(),
-                                                                       start_lane=self.path.last_lane)
+                                                                       start_lane=self.path.last_lane,
+                                                                       lead_in=self.path.lead_in())
             if at < len(self.route) - 1:
                 # every way on from the route's end has a turn the car cannot make: the way
                 # out from an earlier edge, the path planned again from the car (once out of

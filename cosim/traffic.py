@@ -342,6 +342,11 @@ def _plan(lane: str, pos: float, rng_state) -> dict:
 
 
 # --- the component --------------------------------------------------------------------------
+def _plain_points(points) -> tuple:
+    """Points as a tuple of (x, y) float tuples (hashable: part of a prepared extension's key)."""
+    return tuple((float(p[0]), float(p[1])) for p in points)
+
+
 class SumoTraffic(Component):
     """One SUMO run: setup() / step() / teardown(), ego injection, actors, traffic lights."""
 
@@ -1341,13 +1346,15 @@ class SumoTraffic(Component):
         return float(np.concatenate([[0.0], np.cumsum(np.sqrt(L2))])[a] + t[a] * math.sqrt(L2[a]))
 
     def random_extension_path(self, route, first: int, rng_state, start_lane: str, min_len: float = 800.0,
-                              back_max: int = 6):
+                              back_max: int = 6, lead_in: tuple = ()):
         """:meth:`random_extension`, and where it drives on from the route's last edge, the
         lane path of the extension from ``start_lane`` (``cosim.driving.LanePath``, as
         ``LanePath.extended`` builds it), else None: (k, edges, generator state, path). Built
         here, where the draw just read the same lanes (in the main process, one extension's
         path read 57 turns again across the pipe: 45 ms)."""
         kw = dict(min_len=min_len, back_max=back_max, start_lane=start_lane)
+        if lead_in:
+            kw["lead_in"] = _plain_points(lead_in)
         return self._extension_answer(route, first, rng_state, kw)
 
     def random_extension(self, route, first: int, rng_state, min_len: float = 800.0, back_max: int = 6):
@@ -1376,7 +1383,7 @@ class SumoTraffic(Component):
         return _run_steps(self._extension_steps(route, first, rng_state, **kw))
 
     def prepare_extension(self, route, first: int, rng_state, min_len: float = 800.0, back_max: int = 6,
-                          start_lane: str | None = None) -> None:
+                          start_lane: str | None = None, lead_in: tuple = ()) -> None:
         """Start drawing ``random_extension(route, first, rng_state, ...)`` (with
         ``start_lane``, ``random_extension_path``) in the background: :data:`EXTENSION_STEP_PIECES`
         of it after each step. A route extension drawn all at once took 60-130 ms in one frame
@@ -1385,6 +1392,8 @@ class SumoTraffic(Component):
         kw = dict(min_len=min_len, back_max=back_max)
         if start_lane is not None:
             kw["start_lane"] = start_lane
+        if lead_in:
+            kw["lead_in"] = _plain_points(lead_in)
         self._extension = {"key": (tuple(route), rng_state, tuple(sorted(kw.items()))), "result": None,
                            "steps": self._extension_steps(route, first, rng_state, **kw)}
 
@@ -1429,7 +1438,7 @@ class SumoTraffic(Component):
             job["result"] = ("err", e)
 
     def _extension_steps(self, route, first: int, rng_state, min_len: float, back_max: int,
-                         start_lane: str | None = None):
+                         start_lane: str | None = None, lead_in: tuple = ()):
         """:meth:`random_extension` (with ``start_lane``, :meth:`random_extension_path`), a
         random route drawn at a time (a generator: its value is the answer)."""
         rng = random.Random()
@@ -1450,7 +1459,7 @@ class SumoTraffic(Component):
         if len(more) >= 2:
             yield
             try:
-                tail = yield from self._lane_path_steps(more, start_lane)
+                tail = yield from self._lane_path_steps(more, start_lane, lead_in)
             except (ValueError, self._exc):
                 tail = None          # (the main process builds it, and says why)
         return n - 1, more, rng.getstate(), tail
@@ -1651,12 +1660,12 @@ class SumoTraffic(Component):
                     pass
         return self.plan_route(start[0], start[1], **kw)
 
-    def _lane_path_steps(self, edges: Sequence[str], start_lane: str | None):
+    def _lane_path_steps(self, edges: Sequence[str], start_lane: str | None, lead_in: tuple = ()):
         """:meth:`lane_path` built in pieces (a generator: its value is the path)."""
         from .driving import LanePath
 
         path = object.__new__(LanePath)
-        yield from path.build_steps(self._require(), list(edges), start_lane=start_lane)
+        yield from path.build_steps(self._require(), list(edges), start_lane=start_lane, lead_in=lead_in or None)
         return path
 
     def lane_path(self, edges: Sequence[str], start_lane: str | None = None, start_pos: float = 0.0):

@@ -778,6 +778,76 @@ def test_a_lane_path_built_in_pieces_is_the_path_built_at_once(helsinki):
         sim.teardown()
 
 
+def test_a_lane_change_forced_on_a_short_edge_is_eased_over_the_junction_after_it(helsinki):
+    """Helsinki's edge 30605639#1 is 0.2 m long, and only its lane 1 leads on through junction
+    142054910, 3.1 m to the right of the lane the junction before leads onto. Blended on the
+    edge, the path stepped 3 m sideways within 3 m, and the car, at full lock, ran 1.6 m off it
+    (SUMO logged it colliding with a truck there). The path now stays on the lane it came in
+    on to the edge's end and eases onto the lane over the 15 m after it: no step sideways of
+    more than half a metre a metre, and on the junction's lane by its end."""
+    from cosim.driving import JUMP_EASE_M, LanePath
+
+    sim = start_sim(helsinki, start=HEL_MID)
+    try:
+        s = sim.traffic.sumo
+        p = LanePath(s, ["127810493#3", "30605639#1", "17000556"])
+        d = np.diff(p.xy, axis=0)
+        step = np.hypot(d[:, 0], d[:, 1])
+        assert step.max() < 1.2, step.max()
+        turn = np.abs(np.angle(np.exp(1j * np.diff(np.arctan2(d[:, 1], d[:, 0])))))
+        i0 = next(i for i, (ln, _) in enumerate(p.lane_of) if ln.startswith("30605639#1_"))
+        # (from the short edge on; SUMO's own junction lane before it bends 35 degrees at a point)
+        assert np.degrees(turn[i0 - 1:].max()) < 25.0, np.degrees(turn[i0 - 1:].max())   # (blended: 72)
+        jl = np.array(s.lane.getShape(":142054910_0_0"))
+        k = [i for i, (ln, _) in enumerate(p.lane_of) if ln == ":142054910_0_0"]
+        ends = p.xy[k[-1]]
+        assert np.hypot(*(ends - jl[-1])) < 0.3
+        eased = p.s[k] - p.s[k[0]] >= JUMP_EASE_M
+        # on the junction's lane once eased (its line: a straight segment)
+        u = (jl[-1] - jl[0]) / np.hypot(*(jl[-1] - jl[0]))
+        off = (p.xy[k] - jl[0]) @ np.array([-u[1], u[0]])
+        assert np.abs(off[eased]).max() < 0.05 and np.abs(off[~eased]).max() > 2.0
+    finally:
+        sim.teardown()
+
+
+def test_a_route_continued_after_overlapping_junctions_does_not_step_back(helsinki):
+    """A path's continuation is built after the last points of the path it continues
+    (``LanePath.lead_in``): at Helsinki's junction 142054948 the next edge, 0.2 m long, begins
+    2.2 m behind the end of the junction's lane. Continued from there without them, the
+    continuation kept that step back (dropped within a path, :func:`_forward_points`), and the
+    car read 1.8 m off its path. The continuation, built here or by SUMO's worker, goes on
+    forward."""
+    import random
+
+    from cosim.driving import LanePath, _forward_points
+
+    sim = start_sim(helsinki, start=HEL_MID)
+    try:
+        s = sim.traffic.sumo
+        head = LanePath(s, ["127810490#1", "127810493#1", "127810493#2"])
+        more = ["127810493#2", "127810493#3"]
+        alone = LanePath(s, more, start_lane=head.last_lane)
+        assert not _forward_points(np.vstack([head.xy[:head.last_edge_start], alone.xy])).all()
+        new = head.extended(s, more)
+        assert _forward_points(new.xy).all()
+        back = np.einsum("ij,ij->i", np.diff(new.xy, axis=0)[1:], np.diff(new.xy, axis=0)[:-1])
+        assert back.min() > 0.0
+        # the tail SUMO's side builds with the same lead-in is the same path
+        tr = sim.traffic
+        for seed in range(10):          # (a draw that gives a path: some end where they begin)
+            at, got, _, tail = tr.random_extension_path(["127810490#1", "127810493#1", "127810493#2"], 0,
+                                                       random.Random(seed).getstate(), start_lane=head.last_lane,
+                                                       lead_in=head.lead_in())
+            if tail is not None:
+                break
+        assert at == 2 and tail is not None and got[0] == "127810493#2", (at, got)
+        mine = LanePath(s, got, start_lane=head.last_lane, lead_in=head.lead_in())
+        assert np.array_equal(mine.xy, tail.xy) and mine.lane_of == tail.lane_of
+    finally:
+        sim.teardown()
+
+
 def test_a_zigzag_through_overlapping_junctions_is_no_turn(helsinki):
     """Mikonkatu, Helsinki: three signal nodes within 6 m, whose junctions overlap; each 0.2 m
     edge begins 2.2 m behind the end of the one before. The chain of lane shapes zig-zags
