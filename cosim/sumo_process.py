@@ -253,11 +253,15 @@ def _serve(conn):
                     t.set_ego_pose(*a, **kw)
                 t.step()
                 status, value = "step", {}
+                fns: dict = {}                 # (each function looked up once a step: 16 lanes' reads)
                 for key in path:               # reads the caller will make: answered now
                     if key[0] in _NEEDS_LANE and not _on_lane(t, key[1]):
                         continue   # libsumo can crash on these for a vehicle off the network
                     try:
-                        value[key] = ("ok", _portable(_attr(t, key[0])(*key[1])))
+                        fn = fns.get(key[0])
+                        if fn is None:
+                            fn = fns[key[0]] = _attr(t, key[0])
+                        value[key] = ("ok", _portable(fn(*key[1])))
                     except BaseException as e:  # noqa: BLE001
                         value[key] = ("err", _portable_error(e))
             elif op == "batch":                # reads asked ahead (TrafficProcess.expect)
