@@ -653,7 +653,7 @@ class _Streams:
     right after the network is read (``cosim-layers``) makes the junctions' surfaces for
     this process, builds the carriageway, cuts the buildings' passages, places the
     scenery, levels the terrain (the roads' levelling support comes through a pipe as soon
-    as the meshing has it if cosim-layers is waiting for it, :meth:`level_if_free`; else
+    as the meshing has it if cosim-layers is waiting for it, :meth:`claim_level`; else
     this process levels then, :meth:`level`) and writes the scenery and the buildings; a
     child forked once the roads are meshed (``cosim-tiles``) writes road tiles. Forked
     children inherit everything they need and return small dicts through a pipe. The
@@ -740,7 +740,7 @@ class _Streams:
     # -- sharing -----------------------------------------------------------------------------
     def level(self, pts, hw, car, tris, hold, T: Timer, then=None) -> None:
         """The roads' levelling support is known. If cosim-layers is already waiting for it
-        (it claimed the levelling, :meth:`level_if_free`), send it there and go on meshing;
+        (it claimed the levelling, :meth:`claim_level`), send it there and go on meshing;
         else level here, now (as without children), so that cosim-layers, busy with the
         scenery, finds the terrain ready. `then` runs before the others are told."""
         if self.parallel and self.next_index("level"):
@@ -805,12 +805,15 @@ class _Streams:
                 self._raise_from(proc, res_r)
         return pickle.loads(self._surf_r.recv_bytes())
 
-    def level_if_free(self, T: Timer, then=None) -> None:
-        """In cosim-layers, once it has nothing else to do before the terrain: claim the
-        levelling unless the roads' process already levels (it does when it has the support
-        first), wait for the support and level. Whichever process is free first levels."""
-        if not (self.parallel and self._in_child) or self._have_terrain or self.next_index("level"):
-            return
+    def claim_level(self) -> bool:
+        """In cosim-layers, once it has nothing else to do before the terrain but what can
+        wait for the support (the buildings' passages): claim the levelling unless the roads'
+        process already levels (it does when it has the support first). Whichever process is
+        free first levels; True if this one does (:meth:`level_claimed`)."""
+        return self.parallel and self._in_child and not self._have_terrain and not self.next_index("level")
+
+    def level_claimed(self, T: Timer, then=None) -> None:
+        """After :meth:`claim_level`: wait for the support and level."""
         with T.stage("terrain_support_wait"):
             self._receiver.join()
         if not self._support:
@@ -880,11 +883,14 @@ def _layers(tmp: Path, chunks, net, splan, grid, buildings, streams: _Streams, g
         road = PolygonSet(parts)
     with T.stage("scenery_place"):
         placed = place_scenery(splan, road)
-    # (the support comes from the roads: levelled here if it comes after this point)
-    streams.level_if_free(T)
+    # the levelling claimed (if the roads' support is not in yet: else the roads' process
+    # levels), the passages cut while the support comes, then levelled here
+    mine = streams.claim_level()
     if streams.parallel:
         with T.stage("buildings_passages"):
             buildings.cut_passages(parts, ground)
+    if mine:
+        streams.level_claimed(T)
     with T.stage("scenery_terrain_wait"):
         streams.wait_terrain()
     with T.stage("scenery_finish"):
