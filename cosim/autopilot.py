@@ -145,6 +145,11 @@ YELLOW_STATES = set("yY")
 STOP_STATES = set("sw")
 
 
+def _normal_lanes(lanes) -> list:
+    """``lanes`` (a link's foes) but the junction lanes."""
+    return [f for f in lanes if not f.startswith(":")]
+
+
 @dataclass
 class Lead:
     gap: float                 # m, bumper to bumper along the path
@@ -838,11 +843,11 @@ class Autopilot:
                 if key not in self._foes:
                     got = answered(lane_p + ("getFoes",), key)
                     if got is not NOT_YET:
-                        self._foes[key] = [f for f in got if not f.startswith(":")]
+                        self._foes[key] = _normal_lanes(got)
                 if stop.via and stop.via not in self._internal_foes:
                     got = answered(lane_p + ("getInternalFoes",), (stop.via,))
                     if got is not NOT_YET:
-                        self._internal_foes[stop.via] = [f for f in got if not self._is_ped_lane(f)]
+                        self._internal_foes[stop.via] = self._vehicle_lanes(got)
             reads.append((lane_p + ("getLinks",), (stop.lane,)))
             reads.append((lane_p + ("getFoes",), (stop.lane, stop.to_lane)))
             if stop.via:
@@ -1415,7 +1420,7 @@ class Autopilot:
         foes = self._foes.get(key)
         if foes is None:
             try:
-                foes = [f for f in s.lane.getFoes(stop.lane, stop.to_lane) if not f.startswith(":")]
+                foes = _normal_lanes(s.lane.getFoes(stop.lane, stop.to_lane))
             except Exception:
                 foes = []
             self._foes[key] = foes
@@ -1439,7 +1444,7 @@ class Autopilot:
         vias = self._internal_foes.get(stop.via)
         if vias is None:
             try:
-                vias = [f for f in s.lane.getInternalFoes(stop.via) if not self._is_ped_lane(f)]
+                vias = self._vehicle_lanes(s.lane.getInternalFoes(stop.via))
             except Exception:
                 vias = []
             self._internal_foes[stop.via] = vias
@@ -1454,6 +1459,11 @@ class Autopilot:
         core = lane[1:].rsplit("_", 1)[0]
         tail = core.rsplit("_", 1)[-1]
         return tail.startswith("c") or tail.startswith("w")
+
+    @classmethod
+    def _vehicle_lanes(cls, lanes) -> list:
+        """The junction lanes among ``lanes`` (a link's internal foes) that vehicles use."""
+        return [f for f in lanes if not cls._is_ped_lane(f)]
 
     def _match_osm_stop_signs(self, path) -> dict:
         """Stop lines of the path with an OpenStreetMap stop sign next to them (from the

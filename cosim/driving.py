@@ -85,7 +85,7 @@ BACKSTEP_MAX_M = 2.0    # a point this near behind the one before is a kink wher
 BACKSTEP_FAR_M = 5.0
 
 
-def _forward_points(P: np.ndarray) -> np.ndarray:
+def _forward_points(P: np.ndarray, *, runs: bool = True) -> np.ndarray:
     """Which points of a chain of lane shapes to keep: not a repeat of the point before, and
     not a little behind it. Where SUMO joins lanes at a very short edge, one lane can begin
     behind the end of the one before (central Helsinki: 0.86 m back at junction 266377992): a
@@ -100,7 +100,10 @@ def _forward_points(P: np.ndarray) -> np.ndarray:
     distance: a zig-zag, not a turn. Mikonkatu in Helsinki has three signal nodes within 6 m
     whose junctions overlap; each 0.2 m edge begins 2.2 m behind the end of the one before,
     and the step through them read as a turn the car could not make (19.8 m wide at full
-    lock): every route on from Mikonkatu was refused, and the default run stood there."""
+    lock): every route on from Mikonkatu was refused, and the default run stood there.
+
+    ``runs`` False: the rule point by point, without taking runs of forward steps whole (the
+    same points: the tests' reference)."""
     n = len(P)
     keep = np.ones(n, dtype=bool)
     if n < 2:
@@ -118,7 +121,7 @@ def _forward_points(P: np.ndarray) -> np.ndarray:
     last, prev = 0, None
     i = 1
     while i < n:
-        if last == i - 1 and prev == (i - 2 if i >= 2 else None):
+        if runs and last == i - 1 and prev == (i - 2 if i >= 2 else None):
             k = int(np.searchsorted(not_forward, i))
             j = int(not_forward[k]) if k < len(not_forward) else n
             if j > i:               # i .. j-1 kept

@@ -232,8 +232,8 @@ def _serve(conn):
     while True:
         try:
             # the route graph worked out while no request waits: in the time the main process
-            # runs its frame, half a millisecond at a time (a route's extension is drawn after
-            # the steps: SumoTraffic.step)
+            # runs its frame, half a millisecond at a time (a route's extension is drawn once
+            # a step is answered: SumoTraffic.work_after_step, below)
             while not conn.poll():
                 if not t.background_work(IDLE_WORK_S):
                     if graph_work:          # the graph is complete: out of reach too

@@ -380,7 +380,9 @@ class SumoTraffic(Component):
         self._generation = 0
         self._extension = None     # a route extension drawn a little after each step (prepare_extension)
         self._warm = None          # the route graph worked out a little after each step (warm_routes)
-        self.work_when_idle = False  # SUMO's worker process: the route graph in background_work only, work_after_step called by it
+        # SUMO's worker process: the route graph in background_work only, and work_after_step
+        # called by the worker once it has answered a step
+        self.work_when_idle = False
         self._reset_run_state()
         self._ego_spec: dict | None = None
 

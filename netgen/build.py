@@ -24,10 +24,10 @@ has finished, and what is left runs on both cores. Stages (timed; the report and
    cutting grass along it), levels the terrain under the roads if it is done with that
    before the meshing has found the levelling support (``terrain_level``; the rest of the
    meshing goes on here meanwhile; else this process levels as soon as it has the support,
-   as on a city whose scenery takes long to place), puts the scenery on the final terrain
-   and writes it, then cuts the buildings' passages over the roads and writes the
-   buildings (lifted onto the levelled terrain: positions and bases into the prepared
-   files); a second forked process, started once the roads are meshed, writes road
+   as on a city whose scenery takes long to place; it cuts the buildings' passages over the
+   roads while the support comes), puts the scenery on the final terrain and writes it,
+   then writes the buildings (lifted onto the levelled terrain: positions and bases into
+   the prepared files); a second forked process, started once the roads are meshed, writes road
    tiles, piece by piece with this process, by whichever is free.
    The junction planes of the nodes 300 m or more inside the extent are written to
    ``road_planes.npz``; a build given a register (``heights``: a streamed window gets its
@@ -413,7 +413,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
             with T.stage("roads"):  # the levelling support: levelled here or in cosim-layers
                 roads = build_roads(net, natural.sample, q["road_step_m"],
                                     on_support=lambda pts, hw, car, tris, hold: streams.level(
-                                        pts, hw, car, tris, hold, T, None if in_layers else buildings.lift),
+                                        pts, hw, car, tris, hold, T),
                                     pinned=pinned, surfaces=streams.surfaces)
             m_ = PLANES_MARGIN_M
             write_planes(tmp / PLANES_FILE, {j: p for j, p in roads.planes.items()
@@ -422,7 +422,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
             T.t["roads"] = round(T.t["roads"] - T.t.get("terrain_level", 0.0), 3)
             with T.stage("road_tiles_plan"):
                 road_tiles = _RoadTiles(chunks, bounds, roads, TILE_M)
-            streams.fork("cosim-tiles", lambda: (road_tiles.write_claimed(tmp, streams), {}))
+            streams.fork("cosim-tiles", lambda: road_tiles.write_claimed(tmp, streams))
             progress("write", 0.0, "writing chunks")
             with T.stage("write"):
                 tiles = road_tiles.write_claimed(tmp, streams)          # what nobody has taken
@@ -435,17 +435,16 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
             with T.stage("netconvert_wait"):
                 warnings = nc.finish(T)
             with T.stage("streams_wait"):
-                lout, (t2, b2) = streams.results(
+                lout, t2 = streams.results(
                     lambda: _layers(tmp, chunks, net, splan or scenery_plan, grid, buildings, streams,
                                     natural.sample),
-                    lambda: ([], {}))
+                    lambda: [])
     finally:
         nc.kill()       # only if still running: an error above
         if gc_frozen:
             gc.unfreeze()
     T.t.update(lout["timings"])
     lev = streams.lev if streams.lev is not None else lout["levelling"]
-    bfiles.update(b2)
     bfiles.update(lout["buildings"])
     for k, t in tiles + t2:
         entries[k]["tiles"].update(t)
@@ -738,25 +737,23 @@ class _Streams:
         return out
 
     # -- sharing -----------------------------------------------------------------------------
-    def level(self, pts, hw, car, tris, hold, T: Timer, then=None) -> None:
+    def level(self, pts, hw, car, tris, hold, T: Timer) -> None:
         """The roads' levelling support is known. If cosim-layers is already waiting for it
         (it claimed the levelling, :meth:`claim_level`), send it there and go on meshing;
         else level here, now (as without children), so that cosim-layers, busy with the
-        scenery, finds the terrain ready. `then` runs before the others are told."""
+        scenery, finds the terrain ready."""
         if self.parallel and self.next_index("level"):
             self._sup_w.send((pts, hw, car, tris, hold))
             return
-        self._level(pts, hw, car, tris, hold, T, then)
+        self._level(pts, hw, car, tris, hold, T)
 
-    def _level(self, pts, hw, car, tris, hold, T: Timer, then) -> None:
+    def _level(self, pts, hw, car, tris, hold, T: Timer) -> None:
         from .terrain import level_under_roads
 
         with T.stage("terrain_level"):
             self.lev = level_under_roads(self.grid, pts, hw, clear=car, tris=tris, hold=hold)
         if self.parallel:       # hand the heights to the others (shared memory, allocated before the forks)
             np.frombuffer(self._z, dtype=np.float64)[:] = self.grid.z.ravel()
-            if then is not None:
-                then()
             self._ready.set()
         self._have_terrain = True
 
@@ -812,13 +809,13 @@ class _Streams:
         free first levels; True if this one does (:meth:`level_claimed`)."""
         return self.parallel and self._in_child and not self._have_terrain and not self.next_index("level")
 
-    def level_claimed(self, T: Timer, then=None) -> None:
+    def level_claimed(self, T: Timer) -> None:
         """After :meth:`claim_level`: wait for the support and level."""
         with T.stage("terrain_support_wait"):
             self._receiver.join()
         if not self._support:
             raise BuildError("the roads' levelling support never came")
-        self._level(*self._support[-1], T, then)
+        self._level(*self._support[-1], T)
 
     def wait_terrain(self) -> None:
         """Block until the levelled heights are in (then self.grid has them). In this

@@ -1772,7 +1772,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     sm = surfaces() if surfaces is not None else None
     if sm is None:
         sm = surface_meshes(net, step)
-    polys, pkind, pid, pel, tri = sm["polys"], sm["pkind"], sm["pid"], sm["pel"], sm["tri"]
+    polys, pid, pel, tri = sm["polys"], sm["pid"], sm["pel"], sm["tri"]
     crossings = [e for e in net.edges.values()
                  if e.function == "crossing" and e.lanes and len(e.lanes[0].shape) >= 2
                  and not (under and e.id[1:e.id.rfind("_c")] in under)]

@@ -690,41 +690,6 @@ def test_a_path_keeps_its_points_after_a_sharp_turn(helsinki):
         sim.teardown()
 
 
-def _forward_points_one_by_one(P):
-    """The rule of ``_forward_points`` point by point, as it was written first (the test's
-    reference: the function takes the runs of forward steps whole)."""
-    from cosim.driving import BACKSTEP_FAR_M, BACKSTEP_MAX_M
-
-    n = len(P)
-    keep = np.ones(n, dtype=bool)
-    last, prev, i = 0, None, 1
-    while i < n:
-        d = P[i] - P[last]
-        if d @ d <= 1e-6:
-            keep[i] = False
-            i += 1
-            continue
-        if prev is not None:
-            u = P[last] - P[prev]
-            if d @ u <= 0.0:
-                if d @ d < BACKSTEP_MAX_M ** 2:
-                    keep[i] = False
-                    i += 1
-                    continue
-                j = i
-                while j < n and (P[j] - P[last]) @ (P[j] - P[last]) < BACKSTEP_FAR_M ** 2 \
-                        and (P[j] - P[last]) @ u <= 0.0:
-                    j += 1
-                if j < n and j > i and (P[j] - P[last]) @ u > 0.0 \
-                        and (P[j] - P[last]) @ (P[j] - P[last]) < BACKSTEP_FAR_M ** 2:
-                    keep[i:j] = False
-                    i = j
-                    continue
-        prev, last = last, i
-        i += 1
-    return keep
-
-
 def test_forward_points_taken_in_runs_keep_what_the_point_by_point_rule_keeps():
     """``_forward_points`` takes runs of forward steps whole (a 1,000-point path took 5 ms
     point by point): on random chains with repeats, small and large steps back, zig-zags and
@@ -738,13 +703,13 @@ def test_forward_points_taken_in_runs_keep_what_the_point_by_point_rule_keeps():
         steps = rng.normal(size=(n, 2)) * rng.choice([0.01, 0.5, 2.0, 6.0]) + rng.choice([0.0, 1.0]) * np.array([1.0, 0.0])
         steps[rng.random(n) < 0.1] = 0.0
         P = np.cumsum(steps, axis=0)
-        differ += int((_forward_points(P) != _forward_points_one_by_one(P)).any())
+        differ += int((_forward_points(P) != _forward_points(P, runs=False)).any())
     assert differ == 0
     # and a path's worth of forward points with a few kinks, as the lane paths have
     P = np.cumsum(np.column_stack([np.full(1000, 1.0), np.sin(np.arange(1000) / 30.0)]), axis=0)
     P[[100, 400, 401, 700]] -= [[1.5, 0.0], [0.4, 0.0], [0.2, 0.0], [0.0, 0.0]]
     P[701] = P[700]
-    assert (_forward_points(P) == _forward_points_one_by_one(P)).all()
+    assert (_forward_points(P) == _forward_points(P, runs=False)).all()
     assert not _forward_points(P)[[100, 701]].any()
 
 
