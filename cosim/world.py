@@ -182,25 +182,41 @@ class World:
     def tiles_within(self, x: float, y: float, r: float) -> list:
         """Tile keys (i, j, a, b) whose square intersects the disc (x, y, r), nearest first;
         tiles of chunks that are not built are included (the caller decides what to do)."""
+        return [k for _, k in self.tiles_by_distance(x, y, r)]
+
+    def tiles_by_distance(self, x: float, y: float, r: float) -> list:
+        """(squared distance, key) of the tiles within r of (x, y), nearest first: a caller
+        with several radii filters this list of the largest (``tiles_within`` of a smaller
+        radius is the filtered list, in the same order). Called several times a frame: the
+        squared distances of a row and a column are shared by its tiles."""
         t = self.tile_size
+        h = self.chunk_size / 2
+        nt = self.nt
+        gx0 = math.floor((x - r + h) / t)
+        gx1 = math.floor((x + r + h) / t)
+        gy0 = math.floor((y - r + h) / t)
+        gy1 = math.floor((y + r + h) / t)
+        rows = []
+        for gy in range(gy0, gy1 + 1):
+            ymin = gy * t - h
+            dy = max(ymin - y, 0.0, y - (ymin + t))
+            j, b = divmod(gy, nt)
+            rows.append((dy * dy, j, b))
+        r2 = r * r
         out = []
-        gx0 = math.floor((x - r + self.chunk_size / 2) / t)
-        gx1 = math.floor((x + r + self.chunk_size / 2) / t)
-        gy0 = math.floor((y - r + self.chunk_size / 2) / t)
-        gy1 = math.floor((y + r + self.chunk_size / 2) / t)
         for gx in range(gx0, gx1 + 1):
-            for gy in range(gy0, gy1 + 1):
-                xmin = gx * t - self.chunk_size / 2
-                ymin = gy * t - self.chunk_size / 2
-                dx = max(xmin - x, 0.0, x - (xmin + t))
-                dy = max(ymin - y, 0.0, y - (ymin + t))
-                d = math.hypot(dx, dy)
-                if d <= r:
-                    i, a = divmod(gx, self.nt)
-                    j, b = divmod(gy, self.nt)
-                    out.append((d, (i, j, a, b)))
+            xmin = gx * t - h
+            dx = max(xmin - x, 0.0, x - (xmin + t))
+            dx2 = dx * dx
+            if dx2 > r2:
+                continue
+            i, a = divmod(gx, nt)
+            for dy2, j, b in rows:
+                d2 = dx2 + dy2
+                if d2 <= r2:
+                    out.append((d2, (i, j, a, b)))
         out.sort()
-        return [k for _, k in out]
+        return out
 
     def is_built(self, key) -> bool:
         return (key[0], key[1]) in self.chunks

@@ -145,8 +145,8 @@ def test_tile_loading_is_paced_by_how_near_the_missing_tiles_are(monaco_world):
 
 def test_tiles_load_a_part_at_a_time_within_the_budget(monaco_world):
     """With a budget smaller than a tile, ``update`` makes one part of a tile per call (the
-    terrain's heights, then its body; each mesh class PART_FACES faces at a time; the
-    scenery); a tile counts as loaded,
+    terrain's heights, then its body; each mesh class's file read, then PART_FACES faces at a
+    time; the scenery); a tile counts as loaded,
     and ``covered``, only once all its parts are in, and it ends with the same bodies as a tile
     loaded at once."""
     w = monaco_world
@@ -157,7 +157,7 @@ def test_tiles_load_a_part_at_a_time_within_the_budget(monaco_world):
         xmin, ymin, xmax, ymax = w.tile_bounds(key)
         kx, ky = (xmin + xmax) / 2, (ymin + ymax) / 2          # (a disc inside that one tile)
         kinds_whole = whole.load_tile(key).kinds
-        n_parts = 3 + sum(-(-len(np.load(f.with_suffix(".npz"))["f"]) // PART_FACES)
+        n_parts = 3 + sum(1 + -(-len(np.load(f.with_suffix(".npz"))["f"]) // PART_FACES)
                           for kind, f in w.tile_files(key).items() if kind in COLLIDE)
         assert n_parts > 3 + sum(1 for kind in w.tile_files(key) if kind in COLLIDE)     # (some class in parts)
         calls = 0
@@ -211,6 +211,31 @@ def test_tiles_load_a_part_at_a_time_within_the_budget(monaco_world):
     finally:
         whole.teardown()
         part.teardown()
+
+
+def test_tiles_by_distance_are_the_tiles_each_radius_touches(monaco_world):
+    """The tiles around a point, nearest first, for one radius and filtered for smaller ones
+    (as ``update`` does for its radii), are the tiles whose squares the discs touch."""
+    w = monaco_world
+    rng = np.random.default_rng(3)
+    t = w.tile_size
+    for x, y in rng.uniform(-1400.0, 1400.0, (40, 2)):
+        near = w.tiles_by_distance(x, y, 700.0)
+        assert [d for d, _ in near] == sorted(d for d, _ in near)
+        for r in (50.0, 230.0, 475.0, 700.0):
+            got = [k for d2, k in near if d2 <= r * r]
+            assert got == w.tiles_within(x, y, r)
+            brute = set()
+            for gx in range(-12, 12):
+                for gy in range(-12, 12):
+                    x0, y0 = gx * t - w.chunk_size / 2, gy * t - w.chunk_size / 2
+                    dx = max(x0 - x, 0.0, x - (x0 + t))
+                    dy = max(y0 - y, 0.0, y - (y0 + t))
+                    if dx * dx + dy * dy <= r * r:
+                        i, a = divmod(gx, w.nt)
+                        j, b = divmod(gy, w.nt)
+                        brute.add((i, j, a, b))
+            assert set(got) == brute and len(got) == len(brute)
 
 
 def test_a_class_in_parts_is_the_same_surface_as_its_obj(monaco_world):
