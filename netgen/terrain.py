@@ -89,6 +89,19 @@ class TerrainGrid:
         return np.where(lower, z00 + (z10 - z00) * tx + (z01 - z00) * ty,
                         z11 + (z01 - z11) * (1.0 - tx) + (z10 - z11) * (1.0 - ty))
 
+    def sample_higher(self, x, y) -> np.ndarray:
+        """``max(sample(x, y), sample_tri(x, y))``, the cell found and its corners read once."""
+        r, c, tx, ty = self._cell(x, y)
+        nx = self.z.shape[1]
+        zf = self.z.ravel()
+        i = r * nx + c
+        z00, z01, z10, z11 = zf[i], zf[i + 1], zf[i + nx], zf[i + nx + 1]
+        bil = z00 * (1 - tx) * (1 - ty) + z01 * tx * (1 - ty) + z10 * (1 - tx) * ty + z11 * tx * ty
+        # (sample_tri's names: its z10 is the next column, z01 the next row)
+        tri = np.where(tx + ty <= 1.0, z00 + (z01 - z00) * tx + (z10 - z00) * ty,
+                       z11 + (z10 - z11) * (1.0 - tx) + (z01 - z11) * (1.0 - ty))
+        return np.maximum(bil, tri)
+
     def cut(self, bounds) -> np.ndarray:
         """The sub-grid covering chunk bounds (both edges included)."""
         xmin, ymin, xmax, ymax = bounds
@@ -190,27 +203,57 @@ def _level_to(grid: TerrainGrid, pts: np.ndarray, halfwidth: np.ndarray, blend_m
     z = grid.z.ravel().copy()
     z0 = z.copy()
     hi = cand[hit]
-    d, idx = d[hit], idx[hit]
-    di = d[:, 0]
-    ii = idx[:, 0]
-    inner = halfwidth[ii] + INNER_CELLS * sp
-    road_z = pts[ii, 2] - ROAD_SINK_M
+    di, ii = d[hit, 0], idx[hit, 0]
     # a road below the nearest one, within its own reach of the node, by more than any road
     # grade explains between the two points (a street further down a hillside, not the same
     # street's slope): the node takes the lowest such road, so the terrain between the two
-    # does not rise through the lower one
-    ok = np.isfinite(d)
-    jj = np.where(ok, idx, 0)
-    zj = np.where(ok & (d <= halfwidth[jj] + INNER_CELLS * sp), pts[jj, 2], np.inf)
-    gap = np.hypot(pts[jj, 0] - pts[ii, 0][:, None], pts[jj, 1] - pts[ii, 1][:, None])
-    below = zj < pts[ii, 2][:, None] - STACK_STEP_M - STACK_GRADE * gap
-    if below.any():
+    # does not rise through the lower one. Looked for among the STACK_NEIGHBOURS nearest road
+    # points only at the nodes with a road point lower by STACK_STEP_M or more within reach
+    # (the lowest point of the cells around, _lowest_near: elsewhere none of them is below)
+    if float(np.ptp(pts[:, 2])) < STACK_STEP_M:
+        stack = np.zeros(0, dtype=np.int64)      # (no road point is that much lower than another)
+    else:
+        stack = np.flatnonzero(_lowest_near(grid, pts, reach)[hi] < pts[ii, 2] - STACK_STEP_M)
+    inner = halfwidth[ii] + INNER_CELLS * sp
+    road_z = pts[ii, 2] - ROAD_SINK_M
+    if len(stack):
+        i0 = ii[stack]
+        d, idx = d[hit][stack], idx[hit][stack]
+        ok = np.isfinite(d)
+        jj = np.where(ok, idx, 0)
+        zj = np.where(ok & (d <= halfwidth[jj] + INNER_CELLS * sp), pts[jj, 2], np.inf)
+        gap = np.hypot(pts[jj, 0] - pts[i0, 0][:, None], pts[jj, 1] - pts[i0, 1][:, None])
+        below = zj < pts[i0, 2][:, None] - STACK_STEP_M - STACK_GRADE * gap
         lower = np.where(below, zj, np.inf).min(axis=1)
-        road_z = np.where(np.isfinite(lower), lower - ROAD_SINK_M, road_z)
+        road_z[stack] = np.where(np.isfinite(lower), lower - ROAD_SINK_M, road_z[stack])
     w = np.clip(1.0 - (di - inner) / blend_m, 0.0, 1.0)     # 1 on the road, 0 beyond the blend
     z[hi] = w * road_z + (1.0 - w) * z0[hi]
     grid.z = z.reshape(grid.z.shape)
     return z0, {"levelled_nodes": int(np.sum(w >= 1.0)), "blended_nodes": int(np.sum((w > 0) & (w < 1)))}
+
+
+def _lowest_near(grid: TerrainGrid, pts: np.ndarray, reach: float) -> np.ndarray:
+    """Per grid node (flat), a height at or below that of every point of `pts` within `reach`
+    of it: the lowest point of the cells in the square of +-(reach/spacing + 1) cells around
+    it (+inf where there is none; points beyond the grid count at its border)."""
+    ny, nx = grid.z.shape
+    sp = grid.spacing
+    ci = np.clip(np.floor((pts[:, 0] - grid.xmin) / sp), 0, nx - 1).astype(np.int64)
+    ri = np.clip(np.floor((pts[:, 1] - grid.ymin) / sp), 0, ny - 1).astype(np.int64)
+    low = np.full(ny * nx, np.inf)
+    np.minimum.at(low, ri * nx + ci, pts[:, 2])
+    low = low.reshape(ny, nx)
+    k = int(np.ceil(reach / sp)) + 1
+    for axis in (0, 1):             # the square's minimum: along y, then along x
+        a, out = low, low.copy()
+        n = a.shape[axis]
+        for s in range(1, min(k, n - 1) + 1):
+            lo, hi = [slice(None)] * 2, [slice(None)] * 2
+            lo[axis], hi[axis] = slice(None, n - s), slice(s, None)
+            np.minimum(out[tuple(hi)], a[tuple(lo)], out=out[tuple(hi)])
+            np.minimum(out[tuple(lo)], a[tuple(hi)], out=out[tuple(lo)])
+        low = out
+    return low.ravel()
 
 
 def _ranks(counts: np.ndarray) -> np.ndarray:
@@ -245,8 +288,10 @@ def surface_check_points(grid: TerrainGrid, pts: np.ndarray, tris: np.ndarray) -
             continue
         rep = np.repeat(sel, n[sel])
         k = np.repeat(k0[sel], n[sel]) + _ranks(n[sel])
-        t = (k - ua[rep]) / (ub[rep] - ua[rep])
-        out.append(pts[a[rep]] + t[:, None] * (pts[b[rep]] - pts[a[rep]]))
+        u0 = ua[rep]
+        t = (k - u0) / (ub[rep] - u0)
+        pa = pts[a[rep]]
+        out.append(pa + t[:, None] * (pts[b[rep]] - pa))
     # grid nodes inside triangles, at the triangle's height
     X, Y = g[:, 0][tris], g[:, 1][tris]
     c0 = np.ceil(np.minimum(np.minimum(X[:, 0], X[:, 1]), X[:, 2]))
@@ -289,7 +334,7 @@ def clear_road_points(grid: TerrainGrid, pts: np.ndarray) -> int:
     if not len(pts):
         return 0
     lim = pts[:, 2] - ROAD_SINK_M
-    ex = np.maximum(grid.sample(pts[:, 0], pts[:, 1]), grid.sample_tri(pts[:, 0], pts[:, 1])) - lim
+    ex = grid.sample_higher(pts[:, 0], pts[:, 1]) - lim
     bad = np.nonzero(ex > 1e-6)[0]
     if not len(bad):
         return 0
