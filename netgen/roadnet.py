@@ -141,7 +141,10 @@ def _int(s: str | None, default=0):
         return default
 
 
+@lru_cache(maxsize=None)
 def _allowed(allow: str | None, disallow: str | None) -> frozenset:
+    """The vehicle classes a lane's allow / disallow attributes let on it (sumolib's rules),
+    worked out once per distinct pair (a city network has a few dozen among 30,000 lanes)."""
     return frozenset(get_allowed(allow, disallow))
 
 
@@ -149,7 +152,7 @@ def _parse_shapes(strings: list) -> list:
     """Many SUMO shape strings ("x,y x,y ...", may be empty) -> list of (n, 2) arrays."""
     counts = np.array([s.count(" ") + 1 if s else 0 for s in strings], dtype=np.int64)
     text = " ".join(s for s in strings if s).replace(",", " ")
-    flat = np.array(text.split(), dtype=float) if text else np.zeros(0)
+    flat = np.fromstring(text, dtype=float, sep=" ") if text else np.zeros(0)     # (C: 1.5x text.split())
     if len(flat) != 2 * counts.sum():   # an odd shape (3D points, stray spaces): one by one
         return [parse_shape(s) for s in strings]
     pts = flat.reshape(-1, 2)
@@ -244,18 +247,18 @@ def _read(f, internal: bool, internal_junctions: bool | None = None) -> RoadNet:
             if not internal and get("function") == "internal":
                 el.clear()
                 continue
-            e = Edge(id=get("id"), function=get("function", "normal"), from_node=get("from"),
-                     to_node=get("to"), name=get("name", ""), type=get("type", ""), orig_ids=(),
-                     priority=_int(get("priority")))
+            # (positional: a dataclass called with keywords took twice as long)
+            e = Edge(get("id"), get("function", "normal"), get("from"), get("to"), get("name", ""),
+                     get("type", ""), (), [], None, False, _int(get("priority")))
             shape = get("shape")
             if shape is not None:
                 shape_str.append(shape)
                 shape_dst.append((e, "raw_shape"))
             for ln in _children(el, "lane"):
                 get = ln.get
-                lane = Lane(id=get("id"), index=int(get("index", 0)), width=float(get("width", 3.2)),
-                            speed=float(get("speed", 13.89)), length=float(get("length", 0.0)),
-                            allowed=_allowed(get("allow"), get("disallow")), shape=None)
+                lane = Lane(get("id"), int(get("index", 0)), float(get("width", 3.2)),
+                            float(get("speed", 13.89)), float(get("length", 0.0)),
+                            _allowed(get("allow"), get("disallow")), None)
                 shape_str.append(get("shape") or "")
                 shape_dst.append((lane, "shape"))
                 e.lanes.append(lane)
@@ -281,8 +284,7 @@ def _read(f, internal: bool, internal_junctions: bool | None = None) -> RoadNet:
             if not internal_junctions and get("type") == "internal":
                 el.clear()
                 continue
-            j = Junction(id=get("id"), type=get("type", ""), x=float(get("x", 0)),
-                         y=float(get("y", 0)), shape=None)
+            j = Junction(get("id"), get("type", ""), float(get("x", 0)), float(get("y", 0)), None)
             shape_str.append(get("shape") or "")
             shape_dst.append((j, "shape"))
             junctions[j.id] = j
