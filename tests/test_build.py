@@ -1589,6 +1589,26 @@ def test_levelling_looks_up_only_nodes_near_roads_with_the_same_result(tmp_path)
     assert figures["levelled_nodes"] == int(np.sum(wgt >= 1.0)) > 1000
     assert np.isin(hi, terrain._nodes_near(grid, pts, reach)).all()
     assert len(terrain._nodes_near(grid, pts, reach)) < z.size          # a shortcut at all
+    # the road further down is looked for only where _lowest_near allows one: a bound at or
+    # below every road point within reach of each node (on Monaco's slopes most nodes still
+    # have a point 0.5 m lower within reach; a flat city has none)
+    low = terrain._lowest_near(grid, pts, reach)[hi]
+    near_z = np.where(np.isfinite(dk), pts[np.minimum(ik, len(pts) - 1), 2], np.inf)
+    assert (low[:, None] <= near_z).all()
+    looked = low < pts[idx, 2] - terrain.STACK_STEP_M
+    assert 0 < looked.sum() < len(hi)
+
+
+def test_terrain_sample_higher_is_the_higher_of_both_surfaces():
+    """TerrainGrid.sample_higher is max(sample, sample_tri), exactly, inside the grid, on its
+    nodes and lines, and beyond its border (clamped)."""
+    from netgen.terrain import TerrainGrid
+
+    rng = np.random.default_rng(5)
+    g = TerrainGrid(-100.0, -50.0, 10.0, rng.normal(0.0, 3.0, (12, 17)))
+    x = np.concatenate([rng.uniform(-130.0, 90.0, 5000), np.arange(-100.0, 61.0, 5.0)])
+    y = np.concatenate([rng.uniform(-80.0, 90.0, 5000), np.full(33, 0.0)])
+    assert np.array_equal(g.sample_higher(x, y), np.maximum(g.sample(x, y), g.sample_tri(x, y)))
 
 
 def _monaco_support(tmp_path, osm, grid, step):
