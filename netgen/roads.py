@@ -2094,8 +2094,8 @@ def _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_ed
     seg = np.nonzero((cg[1:] == cg[:-1]) & soft[cg[:-1]])[0]
     if not len(seg):
         return seg_keep, pt_keep
-    quads = shapely.polygons(np.stack([C[seg] + nrm[seg], C[seg + 1] + nrm[seg + 1], C[seg + 1] - nrm[seg + 1],
-                                       C[seg] - nrm[seg], C[seg] + nrm[seg]], axis=1))   # (closed: 5x faster)
+    ca, cb, na, nb = C[seg], C[seg + 1], nrm[seg], nrm[seg + 1]
+    quads = _ring_polygons(np.stack([ca + na, cb + nb, cb - nb, ca - na, ca + na], axis=1))
     cores = _lane_strips([lanes[k] for k in veh], inset=SIDEWALK_INTRUSION_M)
     shapely.prepare(cores)
     qi, vi = shapely.STRtree(cores).query(quads)    # (by bounding box; a road's own lanes first
@@ -2143,6 +2143,15 @@ def _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_ed
     alone[1:] &= ~same
     pt_keep = next_ok | prev_ok | alone | ~soft[cg]
     return seg_keep, pt_keep
+
+
+def _ring_polygons(rings: np.ndarray):
+    """Shapely polygons of closed rings (n, k, 2), all of k points: the same polygons as
+    ``shapely.polygons(rings)`` (closed: 5x faster than open ones), in half the time
+    (``from_ragged_array``: 25 against 49 ms for 42,000 quads)."""
+    n, k = rings.shape[:2]
+    return shapely.from_ragged_array(shapely.GeometryType.POLYGON, np.ascontiguousarray(rings).reshape(-1, 2),
+                                     (np.arange(0, n * k + 1, k), np.arange(n + 1)))
 
 
 def _markings(parts, edges, lanes, lane_edge, drive, C, cg, cz, cs, hw, tilt=None):
