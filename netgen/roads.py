@@ -1327,7 +1327,8 @@ def _higher_roads(edges, lanes, lane_edge, junctions):
                    dtype=np.int64)
     nveh = np.bincount(lane_edge[veh], minlength=ne)
     width = np.bincount(lane_edge, np.array([ln.width for ln in lanes]), minlength=ne)
-    order = sorted(range(ne), key=lambda i: (edges[i].layer, edges[i].priority, nveh[i], round(width[i], 2), edges[i].id))
+    nv, wr = nveh.tolist(), np.round(width, 2).tolist()     # (numpy's rounding, as before: plain numbers as keys)
+    order = sorted(range(ne), key=lambda i: (edges[i].layer, edges[i].priority, nv[i], wr[i], edges[i].id))
     rank = np.empty(ne, dtype=np.int64)
     rank[order] = np.arange(ne)
     cores = _lane_strips([lanes[k] for k in veh], inset=SIDEWALK_INTRUSION_M)
@@ -1739,6 +1740,8 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     EZ_off = EZ - np.where(np.isfinite(pe[:, 0]), pe[:, 2] + pe[:, 3] * (EP[:, 0] - pe[:, 0])
                            + pe[:, 4] * (EP[:, 1] - pe[:, 1]), 0.0)
 
+    EPx_n, EPy_n, EZ_n = EP[e_order, 0], EP[e_order, 1], EZ_off[e_order]     # (the ends in node order)
+
     def zfun_at(xy, junction_ids, of):
         """Heights for points of junctions: point i is of junction `junction_ids[of[i]]`,
         blended from all the lane ends of its junction. (From those among the 16 lane ends
@@ -1746,16 +1749,23 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
         own, and took the height of any road nearby.)"""
         node = np.array([node_num.get(j, -1) for j in junction_ids] + [-1], dtype=np.int64)[of]
         has = node >= 0
-        cnt = np.where(has, e_count[np.maximum(node, 0)], 0)
+        nn = np.maximum(node, 0)
+        cnt = np.where(has, e_count[nn], 0)
         pt = np.repeat(np.arange(len(xy)), cnt)
-        within = np.arange(len(pt)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-        nb = e_order[e_start[node[pt]] + within]
-        dx = xy[pt, 0] - EP[nb, 0]
-        dy = xy[pt, 1] - EP[nb, 1]
-        d2 = dx * dx + dy * dy + 1e-6
-        w = 1.0 / (d2 * d2)
+        # (point, end) pairs: the ends of a point's junction are a run of the ends in node
+        # order; the arrays made in place, a million pairs and more on a city
+        k = np.arange(len(pt)) + np.repeat(e_start[nn] - (np.cumsum(cnt) - cnt), cnt)
+        dx = np.repeat(xy[:, 0], cnt)
+        dx -= EPx_n[k]
+        dy = np.repeat(xy[:, 1], cnt)
+        dy -= EPy_n[k]
+        d2 = dx * dx
+        d2 += dy * dy
+        d2 += 1e-6
+        w = np.multiply(d2, d2, out=dx)
+        np.divide(1.0, w, out=w)
         wsum = np.bincount(pt, w, minlength=len(xy))
-        z = np.bincount(pt, w * EZ_off[nb], minlength=len(xy)) / np.maximum(wsum, 1e-300)
+        z = np.bincount(pt, np.multiply(w, EZ_n[k], out=dy), minlength=len(xy)) / np.maximum(wsum, 1e-300)
         PL = np.array([planes.get(j, (np.nan,) * 5) for j in junction_ids] + [(np.nan,) * 5])[of]
         on = np.isfinite(PL[:, 0])
         z += np.where(on, PL[:, 2] + PL[:, 3] * (xy[:, 0] - PL[:, 0]) + PL[:, 4] * (xy[:, 1] - PL[:, 1]), 0.0)
