@@ -348,7 +348,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
     spacing = cfg.spacing
     bounds = [frame.chunk_bounds(i, j) for i, j in chunks]
     net_rel = NET_FILE
-    gc_frozen = False
+    gc_frozen = gc_was_on = False
     try:
         # -- meanwhile (netconvert has the other core): all that needs no network ---------
         from .buildings import plan_buildings           # (imported once netconvert runs)
@@ -388,6 +388,11 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         # -- the network, read while netconvert writes it --------------------------------
         progress("roads", 0.0, "meshing roads")
         gc_frozen = _gc_freeze()        # (again before the forks)
+        # no collections from here to the end, in this process and in the forked ones: the
+        # young objects of the meshing and the writing are freed by their counts, and the
+        # collector's passes over them cost Helsinki's critical path 17 ms (re-enabled below)
+        gc_was_on = gc.isenabled()
+        gc.disable()
         with T.stage("net_read"):
             net = nc.read_net()
         counts = net.counts()
@@ -443,6 +448,8 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         nc.kill()       # only if still running: an error above
         if gc_frozen:
             gc.unfreeze()
+        if gc_was_on:
+            gc.enable()
     T.t.update(lout["timings"])
     lev = streams.lev if streams.lev is not None else lout["levelling"]
     bfiles.update(lout["buildings"])
