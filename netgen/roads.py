@@ -1675,7 +1675,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     # under it: a slab in a car's way)
     soft = ~drive & ~rail
     seg_keep, pt_keep = _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_edge, edges,
-                                                   jrings, strips=higher[:2])
+                                                   jrings, higher[:2])
     # support points for levelling and for junction heights: centrelines and lane corners
     Ck, czk, hwk, nk = C[pt_keep], cz[pt_keep], hw[pt_keep], nrm[pt_keep]
     tk = tilt[pt_keep] * np.hypot(nk[:, 0], nk[:, 1])
@@ -2076,7 +2076,7 @@ def _ends_on_planes(edges, lanes, lane_edge, C, cg, cz, cs, ctot, unit_left, pla
     return tilt
 
 
-def _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_edge, edges, jrings, strips=None):
+def _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_edge, edges, jrings, strips):
     """Which pieces of the sidewalks to mesh: (per segment i -> i+1 of the resampled lane
     centrelines `C`, per point) masks, False for a sidewalk's segment that reaches more than
     :data:`SIDEWALK_INTRUSION_M` into a vehicle lane of another edge, or into a junction
@@ -2098,7 +2098,11 @@ def _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_ed
     n = len(C)
     seg_keep = np.ones(max(n - 1, 0), dtype=bool)
     pt_keep = np.ones(n, dtype=bool)
-    veh = np.nonzero(drive & (np.array([ln.width for ln in lanes]) / 2.0 > SIDEWALK_INTRUSION_M + 0.05))[0]
+    # the vehicle lanes wide enough to reach into, with their strips less SIDEWALK_INTRUSION_M
+    # (`strips`: _higher_roads' numbers and strips of every vehicle lane, ascending)
+    hveh, hcores = strips
+    wide = drive[hveh] & (np.array([lanes[k].width for k in hveh]) / 2.0 > SIDEWALK_INTRUSION_M + 0.05)
+    veh, cores = hveh[wide], hcores[wide]
     if n < 2 or not soft.any() or not len(veh):
         return seg_keep, pt_keep
     seg = np.nonzero((cg[1:] == cg[:-1]) & soft[cg[:-1]])[0]
@@ -2106,14 +2110,6 @@ def _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_ed
         return seg_keep, pt_keep
     ca, cb, na, nb = C[seg], C[seg + 1], nrm[seg], nrm[seg + 1]
     quads = _ring_polygons(np.stack([ca + na, cb + nb, cb - nb, ca - na, ca + na], axis=1))
-    cores = None
-    if strips is not None:          # (_higher_roads' strips of the same lanes, the same inset)
-        at = np.full(len(lanes), -1, dtype=np.int64)
-        at[strips[0]] = np.arange(len(strips[0]))
-        if (at[veh] >= 0).all():
-            cores = strips[1][at[veh]]
-    if cores is None:
-        cores = _lane_strips([lanes[k] for k in veh], inset=SIDEWALK_INTRUSION_M)
     shapely.prepare(cores)
     qi, vi = shapely.STRtree(cores).query(quads)    # (by bounding box; a road's own lanes first
     other = lane_edge[cg[seg[qi]]] != lane_edge[veh[vi]]    # out, then the geometry)

@@ -56,13 +56,7 @@ class TerrainGrid:
 
     def sample(self, x, y) -> np.ndarray:
         """Bilinear height at world x/y (arrays); clamped at the grid's border."""
-        r, c, tx, ty = self._cell(x, y)
-        z = self.z
-        z00 = z[r, c]
-        z01 = z[r, c + 1]
-        z10 = z[r + 1, c]
-        z11 = z[r + 1, c + 1]
-        return (z00 * (1 - tx) * (1 - ty) + z01 * tx * (1 - ty) + z10 * (1 - tx) * ty + z11 * tx * ty)
+        return self._bilinear(*self._corners(x, y))
 
     def _cell(self, x, y):
         """(row, col) of the grid cell under world x/y (arrays; clamped at the grid's border)
@@ -76,31 +70,36 @@ class TerrainGrid:
         r = np.floor(fy).astype(np.int64)
         return r, c, fx - c, fy - r
 
+    def _corners(self, x, y):
+        """The heights of the corners of the cell under x/y, (this node, the next column,
+        the next row, the next of both), and the position in the cell (tx, ty)."""
+        r, c, tx, ty = self._cell(x, y)
+        nx = self.z.shape[1]
+        zf = self.z.ravel()
+        i = r * nx + c
+        return zf[i], zf[i + 1], zf[i + nx], zf[i + nx + 1], tx, ty
+
+    @staticmethod
+    def _bilinear(z00, zc, zr, z11, tx, ty):
+        return z00 * (1 - tx) * (1 - ty) + zc * tx * (1 - ty) + zr * (1 - tx) * ty + z11 * tx * ty
+
+    @staticmethod
+    def _triangles(z00, zc, zr, z11, tx, ty):
+        return np.where(tx + ty <= 1.0, z00 + (zc - z00) * tx + (zr - z00) * ty,
+                        z11 + (zr - z11) * (1.0 - tx) + (zc - z11) * (1.0 - ty))
+
     __call__ = sample
 
     def sample_tri(self, x, y) -> np.ndarray:
         """Height on the grid's triangulation as Bullet's heightfield builds it: each cell is
         cut along its anti-diagonal, from (x+1, y) to (x, y+1). Objects placed with this sit
         exactly on the physics terrain (bilinear differs by up to |z00+z11-z01-z10|/4)."""
-        r, c, tx, ty = self._cell(x, y)
-        z = self.z
-        z00, z10, z01, z11 = z[r, c], z[r, c + 1], z[r + 1, c], z[r + 1, c + 1]
-        lower = tx + ty <= 1.0
-        return np.where(lower, z00 + (z10 - z00) * tx + (z01 - z00) * ty,
-                        z11 + (z01 - z11) * (1.0 - tx) + (z10 - z11) * (1.0 - ty))
+        return self._triangles(*self._corners(x, y))
 
     def sample_higher(self, x, y) -> np.ndarray:
         """``max(sample(x, y), sample_tri(x, y))``, the cell found and its corners read once."""
-        r, c, tx, ty = self._cell(x, y)
-        nx = self.z.shape[1]
-        zf = self.z.ravel()
-        i = r * nx + c
-        z00, z01, z10, z11 = zf[i], zf[i + 1], zf[i + nx], zf[i + nx + 1]
-        bil = z00 * (1 - tx) * (1 - ty) + z01 * tx * (1 - ty) + z10 * (1 - tx) * ty + z11 * tx * ty
-        # (sample_tri's names: its z10 is the next column, z01 the next row)
-        tri = np.where(tx + ty <= 1.0, z00 + (z01 - z00) * tx + (z10 - z00) * ty,
-                       z11 + (z10 - z11) * (1.0 - tx) + (z01 - z11) * (1.0 - ty))
-        return np.maximum(bil, tri)
+        corners = self._corners(x, y)
+        return np.maximum(self._bilinear(*corners), self._triangles(*corners))
 
     def cut(self, bounds) -> np.ndarray:
         """The sub-grid covering chunk bounds (both edges included)."""
@@ -125,6 +124,15 @@ def sample_grid(frame, elevation, extent, spacing: float) -> TerrainGrid:
     return TerrainGrid(xmin=xmin, ymin=ymin, spacing=spacing, z=z)
 
 
+def _point_cells(grid: TerrainGrid, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(row, column) of the grid cell of each point, points beyond the grid at its border."""
+    ny, nx = grid.z.shape
+    sp = grid.spacing
+    ci = np.clip(np.floor((pts[:, 0] - grid.xmin) / sp), 0, nx - 1).astype(np.int64)
+    ri = np.clip(np.floor((pts[:, 1] - grid.ymin) / sp), 0, ny - 1).astype(np.int64)
+    return ri, ci
+
+
 def _nodes_near(grid: TerrainGrid, pts: np.ndarray, reach: float) -> np.ndarray:
     """Flat indices (ascending) of the grid nodes that may lie within `reach` of one of `pts`:
     every node within reach is among them (a superset, by whole cells: the square of
@@ -134,8 +142,7 @@ def _nodes_near(grid: TerrainGrid, pts: np.ndarray, reach: float) -> np.ndarray:
     sp = grid.spacing
     if not len(pts) or not np.all(np.isfinite(pts[:, :2])) or not np.isfinite(reach):
         return np.arange(ny * nx)
-    ci = np.clip(np.floor((pts[:, 0] - grid.xmin) / sp), 0, nx - 1).astype(np.int64)
-    ri = np.clip(np.floor((pts[:, 1] - grid.ymin) / sp), 0, ny - 1).astype(np.int64)
+    ri, ci = _point_cells(grid, pts)
     occ = np.zeros((ny, nx), dtype=np.int32)
     occ[ri, ci] = 1
     k = int(np.ceil(reach / sp)) + 1
@@ -238,8 +245,7 @@ def _lowest_near(grid: TerrainGrid, pts: np.ndarray, reach: float) -> np.ndarray
     it (+inf where there is none; points beyond the grid count at its border)."""
     ny, nx = grid.z.shape
     sp = grid.spacing
-    ci = np.clip(np.floor((pts[:, 0] - grid.xmin) / sp), 0, nx - 1).astype(np.int64)
-    ri = np.clip(np.floor((pts[:, 1] - grid.ymin) / sp), 0, ny - 1).astype(np.int64)
+    ri, ci = _point_cells(grid, pts)
     low = np.full(ny * nx, np.inf)
     np.minimum.at(low, ri * nx + ci, pts[:, 2])
     low = low.reshape(ny, nx)
