@@ -234,6 +234,7 @@ class Autopilot:
         self._yellow: dict = {}
         self._osm_stops: dict = {}
         self._incoming: dict | None = None
+        self._edge_ends: dict | None = None    # edge -> (from, to junction): SumoTraffic.edge_ends
         self._foes: dict = {}
         self._internal_foes: dict = {}
         self._internal_foes_all: dict = {}
@@ -269,7 +270,7 @@ class Autopilot:
         gen = getattr(getattr(sim, "traffic", None), "_generation", 0)
         if gen != self._net_generation:         # SUMO moved to another network (world streaming)
             self._net_generation = gen
-            self._incoming = None
+            self._incoming = self._edge_ends = None
             self._foes, self._internal_foes, self._internal_foes_all = {}, {}, {}
             self._lane_shapes, self._lane_vias, self._vias_asked = {}, None, set()
             self._stop_state.clear()
@@ -809,7 +810,7 @@ class Autopilot:
         if expect is None:
             return
         lane_p, edge_p = ("sumo", "lane"), ("sumo", "edge")
-        reads = [(("incoming_lanes",), ()), (("via_lanes",), ())]
+        reads = [(("incoming_lanes",), ()), (("via_lanes",), ()), (("edge_ends",), ())]
         far = s_here + SENSE_RANGE_M + EXPECT_AHEAD_M
         for lane in path.lanes_between(s_here - 5.0, far):
             if lane.startswith(":"):
@@ -819,7 +820,6 @@ class Autopilot:
             for ln in set(lanes[actors.kind != "person"].tolist()):
                 if ln and not ln.startswith(":"):
                     e = ln.rsplit("_", 1)[0]
-                    reads += [(edge_p + ("getToJunction",), (e,)), (edge_p + ("getFromJunction",), (e,))]
                     if self._lane_vias is not None and ln not in self._vias_asked:
                         self._vias_asked.add(ln)
                         reads += [(lane_p + ("getShape",), (w,)) for w in self._lane_vias.get(ln, ())
@@ -1238,16 +1238,15 @@ class Autopilot:
         except Exception:
             return False
 
-    @staticmethod
-    def _at_path_junction(tr, lane: str, junctions: set) -> bool:
+    def _at_path_junction(self, tr, lane: str, junctions: set) -> bool:
         """Does the edge of `lane` end or start at one of `junctions`?"""
         if not junctions:
             return False
-        edge = lane.rsplit("_", 1)[0]
-        try:
-            return tr.sumo.edge.getToJunction(edge) in junctions or tr.sumo.edge.getFromJunction(edge) in junctions
-        except Exception:
-            return False
+        if self._edge_ends is None:
+            # (one call for the whole network, asked ahead: _expect)
+            self._edge_ends = tr.edge_ends()
+        ends = self._edge_ends.get(lane.rsplit("_", 1)[0])
+        return ends is not None and (ends[1] in junctions or ends[0] in junctions)
 
     def _sumo_leader(self, s_here, path, actors=None) -> Lead | None:
         """SUMO's leader of the ego, if it is on a lane of the path ahead. Its lane and speed

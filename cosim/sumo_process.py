@@ -62,7 +62,7 @@ _STATIC = {
 } | {
     ("sumo", "edge", n) for n in ("getLaneNumber", "getIDList", "getStreetName", "getFromJunction",
                                   "getToJunction", "getParameter")
-} | {("incoming_lanes",), ("via_lanes",), ("lane_links",)} | {
+} | {("incoming_lanes",), ("via_lanes",), ("lane_links",), ("edge_ends",)} | {
     ("sumo", "junction", n) for n in ("getIncomingEdges", "getOutgoingEdges", "getPosition", "getShape",
                                       "getIDList")
 } | {
@@ -78,6 +78,13 @@ _NEEDS_LANE = {("sumo", "vehicle", n) for n in ("getLeader", "getFollower", "get
 PREFETCH_KEEP = 3        # steps a read is asked for again after the caller last made it
 NOT_YET = object()       # TrafficProcess.answered: not in yet
 ACTORS_MARGIN_M = 10.0   # the actors sent with a step cover the radius asked for + this
+
+
+def _traffic_class():
+    """``SumoTraffic``, whose methods the worker answers (imported when first needed)."""
+    from cosim.traffic import SumoTraffic
+
+    return SumoTraffic
 
 
 def _is_read(path) -> bool:
@@ -196,6 +203,23 @@ def _attr(obj, path):
     return obj
 
 
+def _kinds_under(root, path: tuple) -> dict:
+    """path + (name,) -> "obj" for each module or class under `root` (libsumo's domains), and
+    path + (name, fn) -> "call" for each of their functions: what a "get" request would
+    answer for them, all at once."""
+    out = {}
+    for name in dir(root):
+        obj = getattr(root, name, None) if not name.startswith("_") else None
+        if not (inspect.ismodule(obj) or inspect.isclass(obj)):
+            continue
+        out[path + (name,)] = "obj"
+        for fn in dir(obj):
+            f = getattr(obj, fn, None) if not fn.startswith("_") else None
+            if f is not None and callable(f) and not (inspect.ismodule(f) or inspect.isclass(f)):
+                out[path + (name, fn)] = "call"
+    return out
+
+
 def _freeze_garbage_free() -> None:
     """Collect the cycles among the young objects, then freeze all objects (gc.freeze): later
     collections leave them alone. (The cycles among older ones wait for a full collection
@@ -264,6 +288,8 @@ def _serve(conn):
                         value[key] = ("ok", _portable(fn(*key[1])))
                     except BaseException as e:  # noqa: BLE001
                         value[key] = ("err", _portable_error(e))
+            elif op == "kinds":                # what the caller's proxies are (TrafficProcess.setup)
+                value = _kinds_under(_attr(t, path), path)
             elif op == "batch":                # reads asked ahead (TrafficProcess.expect)
                 value = []
                 for key_path, key_args in path:
@@ -411,6 +437,10 @@ class TrafficProcess(Component):
         try:
             self._conn.send((self._args, self._kwargs, level))
             self._call(("setup",), (), {})
+            # libsumo's domains and functions known at once: the first use of a function in a
+            # frame asked the worker what it was, and waited for the step in flight (1.5 ms)
+            self._post(("kinds", ("sumo",), (), {}))
+            self._kinds.update(self.sync()[1])
         except BaseException:
             self.teardown()
             raise
@@ -614,6 +644,10 @@ class TrafficProcess(Component):
 
     def _resolve(self, path):
         kind = self._kinds.get(path)
+        if kind is None and len(path) == 1 and callable(getattr(_traffic_class(), path[0], None)):
+            # a method of SumoTraffic: no round trip to learn that it is one (asked in a frame,
+            # that waited for the step in flight: 1.5 ms)
+            kind = self._kinds[path] = "call"
         if kind is None:
             self._post(("get", path, (), {}))
             status, value = self.sync()

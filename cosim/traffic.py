@@ -305,8 +305,11 @@ EXTENSION_STEP_BUDGET_S = 0.001
 #: destination's route asked of SUMO, or up to SEARCH_PIECE edges of a search, or a turn
 #: measured). Counted, not timed: drawn at the same steps in every run, a run repeats exactly (a
 #: draw paced by the clock, in the worker's idle time too, changed SUMO's traffic from run to run
-#: of the same seed, though every draw gave the same route: 368-409 m driven in 60 s)
-EXTENSION_STEP_PIECES = 8
+#: of the same seed, though every draw gave the same route: 368-409 m driven in 60 s). SUMO's
+#: worker does them before it can take the next step: 8 pieces made 13 steps of Helsinki's
+#: bench 0.3-2.9 ms longer, 2 pieces make 51 steps 0.1-1.8 ms longer (the draw spans 5 s,
+#: within the 280 m between EXTEND_PREPARE_M and EXTEND_AT_M at up to 50 m/s)
+EXTENSION_STEP_PIECES = 2
 # the ego's body reaching this far into a neighbouring lane makes that lane's follower (within
 # STRADDLE_LOOK_M) keep STRADDLE_GAP_M behind it (_straddle_yield)
 STRADDLE_M = 0.3
@@ -1714,6 +1717,19 @@ class SumoTraffic(Component):
         """lane -> the normal lanes with a link into it (one call: cached per network)."""
         self._read_links()
         return self._incoming
+
+    def edge_ends(self) -> dict[str, tuple[str, str]]:
+        """edge -> (its from-junction, its to-junction), every normal edge of the network (one
+        call: cached per network). The autopilot asks whether an actor's road meets a junction
+        of its path; asked edge by edge, a road first seen in a frame waited for SUMO's step in
+        flight (2 ms) where SUMO runs in its worker process."""
+        key = (self._generation, str(self.net_file))
+        if getattr(self, "_edge_ends_key", None) != key:
+            s = self._require()
+            fr, to = s.edge.getFromJunction, s.edge.getToJunction
+            self._edge_ends = {e: (fr(e), to(e)) for e in s.edge.getIDList() if not e.startswith(":")}
+            self._edge_ends_key = key
+        return self._edge_ends
 
     def via_lanes(self) -> dict[str, tuple]:
         """normal lane -> the junction lanes its links go through, both halves of a link a

@@ -211,6 +211,37 @@ def test_reads_asked_ahead_do_not_wait_for_the_step(net, routes):
         t.teardown()
 
 
+def test_libsumo_functions_and_a_networks_edge_ends_need_no_round_trip(net, routes):
+    """The worker tells at setup what each of libsumo's domains and functions is, so that a
+    function first used in a frame is not asked about (that waited for the step in flight):
+    the same kinds as a "get" request answers, one at a time. ``edge_ends`` gives every
+    normal edge's junctions in one cached answer, the same as asked edge by edge."""
+    t = TrafficProcess(net, routes, seed=1)
+    t.setup()
+    try:
+        kinds = dict(t._kinds)
+        for p in [("sumo", "lane"), ("sumo", "vehicle"), ("sumo", "lane", "getLastStepVehicleIDs"),
+                  ("sumo", "edge", "getToJunction"), ("sumo", "simulation", "findRoute")]:
+            assert p in kinds
+            t._post(("get", p, (), {}))
+            assert t.sync()[0] == kinds[p]
+        t.step()                               # a step in flight
+        calls = t.calls
+        t.sumo.person.getNextEdge              # (never used before: resolved here)
+        t.edge_ends                            # (a method of SumoTraffic)
+        assert t.calls == calls and t._inflight, "resolving a name waited for the step"
+        ends = t.edge_ends()
+        calls = t.calls
+        assert t.edge_ends() == ends and t.calls == calls, "edge_ends was asked again"
+        s = t.sumo
+        edges = [e for e in s.edge.getIDList() if not e.startswith(":")]
+        assert sorted(ends) == sorted(edges)
+        for e in edges[:40]:
+            assert ends[e] == (s.edge.getFromJunction(e), s.edge.getToJunction(e))
+    finally:
+        t.teardown()
+
+
 def test_route_searches_through_the_worker_read_the_network_once(net, routes):
     """The car's route searches (``cosim.driving``) read hundreds of lanes' links; through the
     worker, every lane's links come in one call kept per network, and the searches' steps per
