@@ -106,7 +106,8 @@ class Summary:
 LIFT_CHECK_M = 8.0          # a tile replaced within this distance of the car: is the car caught in its ground?
 MAX_SUMO_RESTARTS = 5      # a SUMO worker that keeps crashing ends the run
 EXTEND_AT_M = 120.0        # the route is extended when its path ends this near ahead of the car
-EXTEND_PREPARE_M = 400.0   # ... and its extension drawn ahead from this near (prepare_extension)
+EXTEND_PREPARE_M = 600.0   # ... and its extension drawn ahead from this near (prepare_extension:
+                           # a piece after each step, over about 100 steps)
 
 
 class Simulation:

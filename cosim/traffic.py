@@ -307,9 +307,10 @@ EXTENSION_STEP_BUDGET_S = 0.001
 #: draw paced by the clock, in the worker's idle time too, changed SUMO's traffic from run to run
 #: of the same seed, though every draw gave the same route: 368-409 m driven in 60 s). SUMO's
 #: worker does them before it can take the next step: 8 pieces made 13 steps of Helsinki's
-#: bench 0.3-2.9 ms longer, 2 pieces make 51 steps 0.1-1.8 ms longer (the draw spans 5 s,
-#: within the 280 m between EXTEND_PREPARE_M and EXTEND_AT_M at up to 50 m/s)
-EXTENSION_STEP_PIECES = 2
+#: bench 0.3-2.9 ms longer, 2 pieces 51 steps 0.1-1.8 ms, one piece 101 steps 0.05-1.6 ms
+#: (18 ms in all; the draw spans 10 s, within the 480 m between cosim.sim's EXTEND_PREPARE_M
+#: and EXTEND_AT_M at up to 48 m/s; a draw not done by then is finished in one frame)
+EXTENSION_STEP_PIECES = 1
 # the ego's body reaching this far into a neighbouring lane makes that lane's follower (within
 # STRADDLE_LOOK_M) keep STRADDLE_GAP_M behind it (_straddle_yield)
 STRADDLE_M = 0.3
