@@ -82,6 +82,7 @@ class Summary:
     swap_wait_s: float = 0.0         # wall time a repeatable run waited for late window builds
     sumo_restarts: int = 0           # SUMO's worker process crashed and was started again
     lifted_out: int = 0              # the car set on top of a replaced tile's higher ground (_lift_out)
+    other_ways: int = 0              # routes taken on from the car's own lane after a lane change never came
     frame_ms_median: float = 0.0
     frame_ms_p999: float = 0.0
     frame_ms_max: float = 0.0
@@ -98,6 +99,8 @@ class Summary:
                 + (f" (waited {self.swap_wait_s:.1f} s for late builds)" if self.swap_wait_s else "")
                 + (f"; SUMO restarted after a crash {self.sumo_restarts} time(s)" if self.sumo_restarts else "")
                 + (f"; the car set on top of new, higher ground {self.lifted_out} time(s)" if self.lifted_out else "")
+                + (f"; another way taken after waiting {LANE_CHANGE_GIVE_UP_S:.0f} s for a lane change "
+                   f"{self.other_ways} time(s)" if self.other_ways else "")
                 + (f"; vehicles taken out after a standoff with the ego {self.standoffs_released}"
                    if self.standoffs_released else "")
                 + f".{arr}")
@@ -105,6 +108,10 @@ class Summary:
 
 LIFT_CHECK_M = 8.0          # a tile replaced within this distance of the car: is the car caught in its ground?
 MAX_SUMO_RESTARTS = 5      # a SUMO worker that keeps crashing ends the run
+#: the car standing this long for a lane change its route needs (no gap in the lane beside: a
+#: jam) takes another way, a route on from the lane it is in (a 30-minute dense Helsinki drive
+#: stood 18 minutes for one, in a queue that never let it in)
+LANE_CHANGE_GIVE_UP_S = 30.0
 EXTEND_AT_M = 120.0        # the route is extended when its path ends this near ahead of the car
 EXTEND_PREPARE_M = 600.0   # ... and its extension drawn ahead from this near (prepare_extension:
                            # a piece after each step, over about 100 steps)
@@ -153,6 +160,7 @@ class Simulation:
         self._swap_adopting = None
         self._swap_hold = 0                # frames left without reloading stale tiles
         self._extend_retry_t = 0.0         # no route extension before this sim time
+        self._lc_stuck_since = None        # standing for a lane change since (LANE_CHANGE_GIVE_UP_S)
         self._extension_asked = None       # (route, generator state) of the extension prepared
         self._setup_done = False
         self._gc_frozen = False
@@ -433,6 +441,14 @@ class Simulation:
         self._check_collisions()
         # route bookkeeping (not while SUMO swaps networks: the route is planned anew then)
         swapping = self._swap_next is not None or self._swap_adopting is not None
+        if self.manual is None and abs(st.speed) < 0.1 and getattr(self.driver, "reason", "") == "lane change":
+            if self._lc_stuck_since is None:
+                self._lc_stuck_since = self.t
+            elif self.t - self._lc_stuck_since >= LANE_CHANGE_GIVE_UP_S and not swapping:
+                self._lc_stuck_since = self.t          # (tried again after as long, if no other way)
+                self._take_another_way()
+        else:
+            self._lc_stuck_since = None
         if self.goal_xy is None and not swapping:
             ahead = self.path.length - s_here
             if ahead < EXTEND_AT_M:
@@ -704,6 +720,32 @@ class Simulation:
             return None
         lanes = list(dict.fromkeys(ln for ln, _ in self.path.lane_of[k:]))
         return (lanes, st.x, st.y, st.yaw), dict(route=self.route, **self._plan_kw())
+
+    def _take_another_way(self) -> bool:
+        """The car has stood LANE_CHANGE_GIVE_UP_S for a lane change its route needs: a route
+        on from the lane it holds to, whose next road that lane leads to itself (to the goal
+        the fastest such way, else at random), as a driver takes another street rather than
+        wait in a jam for a gap that does not come. False (the route kept) where there is none."""
+        st = self.vehicle.state()
+        k, _, _ = self.path.project(st.x, st.y, self._path_idx)
+        lane = self.path.driven_lane(k)
+        if not lane or lane.startswith(":"):
+            return False
+        try:
+            plan = self.traffic.plan_route(lane, 0.0, keep_lane=True, at_xy=(st.x, st.y), **self._plan_kw())
+            lane = plan["lane"]
+        except CosimError as e:
+            log.info("no other way from %s: %s", lane, e)
+            return False
+        if not plan["route"] or plan["path"] is None:
+            log.info("no other way from %s to the goal", lane)
+            return False
+        log.info("t=%.1f s: no gap for the lane change in %.0f s: another way from %s (%s)", self.t,
+                 LANE_CHANGE_GIVE_UP_S, lane, " ".join(plan["route"][:3]))
+        self._apply_plan(plan)
+        self._path_idx = self.path.project(st.x, st.y, 0)[0]
+        self.summary.other_ways += 1
+        return True
 
     def replan(self, plan: dict | None = None):
         """Plan the route again from where the car is (after a SUMO network swap), from the

@@ -1594,29 +1594,62 @@ class SumoTraffic(Component):
         return fixed[:end]
 
     def plan_route(self, lane: str, pos: float, goal_xy=None, rng_state=None, max_goal_snap_m: float = 1e9,
-                   min_len: float = 800.0) -> dict:
+                   min_len: float = 800.0, keep_lane: bool = False, at_xy=None) -> dict:
         """The ego's route from ``pos`` on ``lane``, and its ``LanePath``: to the lane nearest to
         ``goal_xy`` (SUMO's router), else a random route (``random_route``). ``goal`` in the
         answer: snapped lane, point and distance; ``route`` is empty and ``path`` None when the
-        goal is too far from a road or cannot be reached."""
+        goal is too far from a road or cannot be reached. With ``keep_lane``, the route's next
+        road is one that ``lane`` itself leads to (no lane change on this road): the fastest
+        such way to the goal, else a random route on from one of them; with ``at_xy`` too, from
+        the lane of ``lane``'s road nearest to that point (the lane the car is in) and its
+        position there."""
         s = self._require()
         edge = lane.rsplit("_", 1)[0]
+        firsts = [edge]
+        if keep_lane:
+            try:
+                if at_xy is not None:
+                    x, y = float(at_xy[0]), float(at_xy[1])
+                    ids = [f"{edge}_{i}" for i in range(s.edge.getLaneNumber(edge))]
+                    lane = min(ids, key=lambda ln: _polyline_distance(
+                        np.asarray(s.lane.getShape(ln), dtype=float)[:, :2], x, y))
+                    pos = max(0.0, self.lane_pos(lane, x, y))
+                links = s.lane.getLinks(lane)
+            except self._exc as e:
+                raise SimulationError(f"SUMO has no lane {lane}: {e}") from None
+            # (not a turnaround: too tight for the car to take from a standstill in a queue)
+            firsts = list(dict.fromkeys(ln[0].rsplit("_", 1)[0] for ln in links
+                                        if len(ln) < 7 or str(ln[6]).lower() != "t"))
+            if not firsts:
+                raise SimulationError(f"lane {lane} leads nowhere")
+        head = [edge] if keep_lane else []
         out = _plan(lane, pos, rng_state)
         if goal_xy is not None:
             glane, gpos, gpx, gpy, _, gdist = self.snap_lane(float(goal_xy[0]), float(goal_xy[1]))
             out["goal"] = dict(lane=glane, pos=gpos, x=gpx, y=gpy, dist=gdist)
             if gdist > max_goal_snap_m:
                 return dict(out, route=[], path=None)
-            try:
-                r = s.simulation.findRoute(edge, glane.rsplit("_", 1)[0], vType="DEFAULT_VEHTYPE")
-            except self._exc:
+            best = None
+            for first in firsts:
+                try:
+                    r = s.simulation.findRoute(first, glane.rsplit("_", 1)[0], vType="DEFAULT_VEHTYPE")
+                except self._exc:
+                    continue
+                if r.edges and (best is None or r.travelTime < best.travelTime):
+                    best = r
+            if best is None:
                 return dict(out, route=[], path=None)
-            if not r.edges:
-                return dict(out, route=[], path=None)
-            route = list(r.edges)
-            out.update(length=float(r.length), eta=float(r.travelTime))
+            route = head + list(best.edges)
+            out.update(length=float(best.length), eta=float(best.travelTime))
         else:
-            route, out["rng_state"] = self.random_route(edge, rng_state, min_len)
+            first = firsts[0]
+            if len(firsts) > 1:
+                rng = random.Random()
+                rng.setstate(rng_state)
+                first = rng.choice(firsts)
+                rng_state = rng.getstate()
+            more, out["rng_state"] = self.random_route(first, rng_state, min_len)
+            route = head + list(more)
         return dict(out, route=route, path=self.lane_path(route, start_lane=lane, start_pos=pos))
 
     def replan_from(self, lanes, x: float, y: float, yaw: float, route=(), **kw) -> dict:

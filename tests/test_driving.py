@@ -1547,6 +1547,64 @@ def _lc_sim(world) -> Simulation:
     return start_sim(world, start=start, goal=goal, speed_mps=8.0)
 
 
+def test_a_car_that_stands_too_long_for_a_lane_change_takes_another_way(helsinki):
+    """A car that stands LANE_CHANGE_GIVE_UP_S for a lane change its route needs (a queue in
+    the lane beside that never lets it in: a 30-minute dense Helsinki drive stood 18 minutes
+    so) takes another way: a route on from the lane it is in, whose next road that lane leads
+    to itself. Here the route from HEL_LC_EDGE's lane _1 to HEL_LC_NEXT needs lane _2; a driver
+    that stands for that lane change (as the autopilot does with no gap) gets, after the wait
+    and not before, a route to the same goal on from lane _1's own link, with no lane change
+    on HEL_LC_EDGE; without a goal, a random route on from that link."""
+    import random
+
+    from cosim.sim import LANE_CHANGE_GIVE_UP_S
+
+    class Standing:       # the autopilot's state while no gap comes
+        reason, target_speed = "lane change", 0.0
+
+        def control(self, st, s_here, actors, dt):
+            return 0.0, 1.0, 0.0
+
+    probe = start_sim(helsinki, start=HEL_MID)
+    try:
+        start, goal = _lc_start_goal(probe)
+    finally:
+        probe.teardown()
+    sim = Simulation(SimConfig(world_dir=helsinki, traffic="none", seed=1, start=start, goal=goal, speed_mps=8.0),
+                     driver=Standing()).setup()
+    try:
+        tr, s = sim.traffic, sim.traffic.sumo
+        lane1 = HEL_LC_EDGE + "_1"
+        own = {ln[0].rsplit("_", 1)[0] for ln in s.lane.getLinks(lane1)}
+        assert sim.route[:2] == [HEL_LC_EDGE, HEL_LC_NEXT] and HEL_LC_NEXT not in own
+        assert [c for c in sim.path.changes if c.edge == HEL_LC_EDGE]
+        for _ in range(int(LANE_CHANGE_GIVE_UP_S / 0.1) - 5):
+            sim.step()
+        assert sim.summary.other_ways == 0 and sim.route[1] == HEL_LC_NEXT, "gave up too early"
+        for _ in range(10):
+            sim.step()
+        assert sim.summary.other_ways == 1
+        route = sim.route
+        assert route[0] == HEL_LC_EDGE and route[1] in own and route[-1] == HEL_LC_NEXT
+        assert not [c for c in sim.path.changes if c.edge == HEL_LC_EDGE]
+        st = sim.vehicle.state()
+        assert abs(sim.path.project(st.x, st.y, 0)[2]) < 0.5        # the new path starts under the car
+        # the fastest such way: no other of lane _1's links gives a faster route to the goal
+        t_new = s.simulation.findRoute(route[1], HEL_LC_NEXT, vType="DEFAULT_VEHTYPE").travelTime
+        for e in own:
+            r = s.simulation.findRoute(e, HEL_LC_NEXT, vType="DEFAULT_VEHTYPE")
+            assert not r.edges or r.travelTime >= t_new - 1e-6
+        # without a goal: at random, on from one of lane _1's links (from the lane nearest the
+        # point given, whatever lane is named)
+        x, y = s.lane.getShape(lane1)[1][:2]
+        plan = tr.plan_route(HEL_LC_EDGE + "_2", 0.0, keep_lane=True, at_xy=(x, y),
+                             rng_state=random.Random(5).getstate())
+        assert plan["lane"] == lane1 and plan["route"][0] == HEL_LC_EDGE and plan["route"][1] in own
+        assert len(plan["route"]) > 2 and not [c for c in plan["path"].changes if c.edge == HEL_LC_EDGE]
+    finally:
+        sim.teardown()
+
+
 def test_a_replan_in_a_lane_change_starts_on_the_lane_under_the_car(helsinki):
     """Along a lane change the path names the lane it changes into; a re-plan after a network
     swap started the new path on that lane while the car was still on the lane it came from,
