@@ -70,6 +70,9 @@ _STATIC = {
 } | {("sumo", "simulation", "getNetBoundary")}
 
 
+#: SumoTraffic's readings of a whole network that the autopilot makes at once on a new one
+_NETWORK_READS = ("incoming_lanes", "via_lanes", "edge_ends")
+
 # reads prefetched only for a vehicle on a lane: the caller guards them (libsumo's getLeader
 # segfaults for a vehicle that moveToXY left off the network), and a prefetch must not be less
 # careful than the caller
@@ -726,9 +729,11 @@ class TrafficProcess(Component):
         except (EOFError, OSError, BrokenPipeError):
             nxt["error"] = SimulationError("SUMO's worker process for the next network ended at once")
             return
-        # load, and swap_adopt's first second (SumoTraffic.warm_up), taken ahead
+        # load, swap_adopt's first second (SumoTraffic.warm_up) and the network's links and
+        # junctions that the autopilot reads at once (warm_network), taken ahead
         self.prepare_call(None, "setup")
         self.prepare_call(None, "warm_up")
+        self.prepare_call(None, "warm_network")
 
     def prepare_call(self, tag: str | None, name: str, *args, **kwargs) -> None:
         """Ask the SUMO started by ``prepare_network`` for ``name(*args, **kwargs)`` (a method
@@ -835,6 +840,10 @@ class TrafficProcess(Component):
             self._last_pose = (float(ego_pose[0]), float(ego_pose[1]))
             self._steps += 1
         self._post(("call", ("swap_adopt",), (carry,), kw), tag="adopt")
+        # the new network's links and junctions that the autopilot reads at once, sent after
+        # the adopt (the worker has them read: warm_network), cached here when they come
+        keys = tuple(((name,), ()) for name in _NETWORK_READS)
+        self._post(("batch", keys, (), {}), tag=("expect", keys))
         return ego_pose is not None
 
     def swap_end(self) -> dict:

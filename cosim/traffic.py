@@ -340,6 +340,10 @@ class _Kept:
     lane_length: float = -1.0    # of lane_id: the same lane in the next network has the same length
 
 
+#: the attributes that say which network a cached reading of it is of: (generation, net file)
+_NETWORK_KEYS = ("_every_key", "_edge_ends_key", "_links_key", "_incoming_key")
+
+
 def _plan(lane: str, pos: float, rng_state) -> dict:
     """A route plan (``SumoTraffic.plan_route``) before its route, path and goal are known."""
     return dict(lane=lane, pos=float(pos), goal=None, length=None, eta=None, rng_state=rng_state)
@@ -1277,6 +1281,15 @@ class SumoTraffic(Component):
                     del moved[aid]
         return ActorsContext(self.sim_time, res, infos, speeds)
 
+    def warm_network(self) -> None:
+        """Read what the autopilot asks of a new network at once (every lane's links, the
+        lanes into each lane, the junction lanes of each, every edge's junctions), in a SUMO
+        started ahead of a swap (``TrafficProcess.prepare_network``): asked after the swap,
+        the reading made its third frame 136-144 ms long (a 30-minute Helsinki soak). Kept
+        through the swap (``_adopt_insert``)."""
+        self._read_links()
+        self.edge_ends()
+
     def warm_up(self) -> None:
         """Run a SUMO just started on a network up to ``SWAP_WARM_S``, paying now what its first
         second costs anyway: SUMO builds its lane lookup (convertRoad, moveToXY) and its
@@ -2013,7 +2026,12 @@ class SumoTraffic(Component):
         ego make room (after SUMO's first second, which inserts the demand's trips in
         progress), the actors `kept` go in, and the ego at `pose` (x, y, yaw, speed; None:
         where it was captured). Returns old id -> new id."""
+        old = (self._generation, str(self.net_file))
         self._generation = max(self._generation, int(carry["generation"]) + 1)
+        # what was read of this SUMO's network before (warm_network, ahead of the swap) holds
+        for attr in _NETWORK_KEYS:
+            if getattr(self, attr, None) == old:
+                setattr(self, attr, (self._generation, old[1]))
         self.warm_up()
         cx, cy = carry["center"]
         self._make_room(cx, cy, carry["keep_radius"] + SWAP_ROOM_MARGIN_M)

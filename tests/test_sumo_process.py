@@ -389,6 +389,17 @@ def test_swap_to_a_network_started_ahead(net, routes, tmp_path):
         assert remote._proc.pid != first and remote.preparing is None
         assert remote.route_files == [p for p in map(type(remote.route_files[0]), other)]
         assert remote._generation == 1
+        # the new network's links and junctions, read while it was started ahead
+        # (warm_network), hold after the swap: the worker reads them no more, and they are
+        # here already (sent after the adopt), the same as asked of SUMO now
+        assert remote._incoming_key == (1, str(net)) and remote._edge_ends_key == (1, str(net))
+        calls = remote.calls
+        vias, ends = remote.via_lanes(), remote.edge_ends()
+        assert remote.calls == calls, "the network's readings were asked for again"
+        s = remote.sumo
+        lane0 = next(ln for ln in s.lane.getIDList() if not ln.startswith(":") and s.lane.getLinks(ln))
+        assert ends[lane0.rsplit("_", 1)[0]][1] == s.edge.getToJunction(lane0.rsplit("_", 1)[0])
+        assert lane0 in vias
         # the old worker is collected as the run goes on (it closes SUMO at the lowest CPU
         # priority: on a busy machine that takes a while)
         for _ in range(600):
