@@ -72,7 +72,7 @@ from .driving import (PurePursuit, SpeedController, _drivable_lanes, _resample, 
                       plan_speed, stop_speed)
 from .mirror import LEVEL_M      # (levels more than this apart: a deck and the road under it)
 from .sumo_process import NOT_YET
-from .traffic import _boxes_overlap
+from .traffic import NETWORK_READS, _boxes_overlap
 from .vehicle import STEER_RATE, WHEELBASE
 
 log = logging.getLogger("cosim.autopilot")
@@ -810,7 +810,7 @@ class Autopilot:
         if expect is None:
             return
         lane_p, edge_p = ("sumo", "lane"), ("sumo", "edge")
-        reads = [(("incoming_lanes",), ()), (("via_lanes",), ()), (("edge_ends",), ())]
+        reads = [((name,), ()) for name in NETWORK_READS]
         far = s_here + SENSE_RANGE_M + EXPECT_AHEAD_M
         for lane in path.lanes_between(s_here - 5.0, far):
             if lane.startswith(":"):
@@ -819,7 +819,6 @@ class Autopilot:
         if lanes is not None:
             for ln in set(lanes[actors.kind != "person"].tolist()):
                 if ln and not ln.startswith(":"):
-                    e = ln.rsplit("_", 1)[0]
                     if self._lane_vias is not None and ln not in self._vias_asked:
                         self._vias_asked.add(ln)
                         reads += [(lane_p + ("getShape",), (w,)) for w in self._lane_vias.get(ln, ())

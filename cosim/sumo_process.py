@@ -70,9 +70,6 @@ _STATIC = {
 } | {("sumo", "simulation", "getNetBoundary")}
 
 
-#: SumoTraffic's readings of a whole network that the autopilot makes at once on a new one
-_NETWORK_READS = ("incoming_lanes", "via_lanes", "edge_ends")
-
 # reads prefetched only for a vehicle on a lane: the caller guards them (libsumo's getLeader
 # segfaults for a vehicle that moveToXY left off the network), and a prefetch must not be less
 # careful than the caller
@@ -83,11 +80,12 @@ NOT_YET = object()       # TrafficProcess.answered: not in yet
 ACTORS_MARGIN_M = 10.0   # the actors sent with a step cover the radius asked for + this
 
 
-def _traffic_class():
-    """``SumoTraffic``, whose methods the worker answers (imported when first needed)."""
+def _method_kinds() -> dict:
+    """(name,) -> "call" for each method of SumoTraffic (what the worker answers to)."""
     from cosim.traffic import SumoTraffic
 
-    return SumoTraffic
+    return {(n,): "call" for n in dir(SumoTraffic)
+            if not n.startswith("__") and inspect.isfunction(getattr(SumoTraffic, n, None))}
 
 
 def _is_read(path) -> bool:
@@ -440,10 +438,12 @@ class TrafficProcess(Component):
         try:
             self._conn.send((self._args, self._kwargs, level))
             self._call(("setup",), (), {})
-            # libsumo's domains and functions known at once: the first use of a function in a
-            # frame asked the worker what it was, and waited for the step in flight (1.5 ms)
+            # SumoTraffic's methods, libsumo's domains and their functions known at once: the
+            # first use of one in a frame asked the worker what it was, and waited for the step
+            # in flight (1.5 ms)
             self._post(("kinds", ("sumo",), (), {}))
             self._kinds.update(self.sync()[1])
+            self._kinds.update(_method_kinds())
         except BaseException:
             self.teardown()
             raise
@@ -647,10 +647,6 @@ class TrafficProcess(Component):
 
     def _resolve(self, path):
         kind = self._kinds.get(path)
-        if kind is None and len(path) == 1 and callable(getattr(_traffic_class(), path[0], None)):
-            # a method of SumoTraffic: no round trip to learn that it is one (asked in a frame,
-            # that waited for the step in flight: 1.5 ms)
-            kind = self._kinds[path] = "call"
         if kind is None:
             self._post(("get", path, (), {}))
             status, value = self.sync()
@@ -842,7 +838,9 @@ class TrafficProcess(Component):
         self._post(("call", ("swap_adopt",), (carry,), kw), tag="adopt")
         # the new network's links and junctions that the autopilot reads at once, sent after
         # the adopt (the worker has them read: warm_network), cached here when they come
-        keys = tuple(((name,), ()) for name in _NETWORK_READS)
+        from .traffic import NETWORK_READS
+
+        keys = tuple(((name,), ()) for name in NETWORK_READS)
         self._post(("batch", keys, (), {}), tag=("expect", keys))
         return ego_pose is not None
 

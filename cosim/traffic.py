@@ -340,8 +340,11 @@ class _Kept:
     lane_length: float = -1.0    # of lane_id: the same lane in the next network has the same length
 
 
-#: the attributes that say which network a cached reading of it is of: (generation, net file)
-_NETWORK_KEYS = ("_every_key", "_edge_ends_key", "_links_key", "_incoming_key")
+#: SumoTraffic's readings of a whole network that the autopilot makes at once on a new one
+#: (each cached per network, ``_net_key``): read ahead of a swap (``warm_network``) and sent to
+#: the main process right after it (``TrafficProcess.swap_begin``), asked ahead every frame
+#: (``Autopilot._expect``)
+NETWORK_READS = ("incoming_lanes", "via_lanes", "edge_ends")
 
 
 def _plan(lane: str, pos: float, rng_state) -> dict:
@@ -386,6 +389,7 @@ class SumoTraffic(Component):
         self._tmpdir: str | None = None
         self._time_offset = 0.0
         self._generation = 0
+        self._loads = 0            # SUMO started on a network (setup): what network caches are of
         self._extension = None     # a route extension drawn a little after each step (prepare_extension)
         self._warm = None          # the route graph worked out a little after each step (warm_routes)
         # SUMO's worker process: the route graph in background_work only, and work_after_step
@@ -458,6 +462,7 @@ class SumoTraffic(Component):
             cmd += ["--start", "--quit-on-end"]
         cmd += self.extra_args
         self._reset_run_state()
+        self._loads += 1
         if self.backend == "libsumo":
             import libsumo
             if _LIBSUMO_OWNER is not None or libsumo.simulation.isLoaded():
@@ -1285,10 +1290,10 @@ class SumoTraffic(Component):
         """Read what the autopilot asks of a new network at once (every lane's links, the
         lanes into each lane, the junction lanes of each, every edge's junctions), in a SUMO
         started ahead of a swap (``TrafficProcess.prepare_network``): asked after the swap,
-        the reading made its third frame 136-144 ms long (a 30-minute Helsinki soak). Kept
-        through the swap (``_adopt_insert``)."""
-        self._read_links()
-        self.edge_ends()
+        the reading made its third frame 136-144 ms long (a 30-minute Helsinki soak). Cached
+        per SUMO load (``_net_key``), they hold through the swap's adopt."""
+        for name in NETWORK_READS:
+            getattr(self, name)()
 
     def warm_up(self) -> None:
         """Run a SUMO just started on a network up to ``SWAP_WARM_S``, paying now what its first
@@ -1505,7 +1510,7 @@ class SumoTraffic(Component):
         from .driving import escapes_steps, is_tunnel, undrivable_steps_steps, without_turnarounds_steps
 
         s = self._require()
-        key = (self._generation, str(self.net_file))
+        key = self._net_key()
         if getattr(self, "_every_key", None) != key:
             self._every = [e for e in s.edge.getIDList() if not e.startswith(":")]
             self._every_key = key
@@ -1765,12 +1770,17 @@ class SumoTraffic(Component):
         self._read_links()
         return self._incoming
 
+    def _net_key(self) -> tuple:
+        """What a cached reading of the network is of: this SUMO load of this network file
+        (a swap's adopt, on a SUMO started ahead on the new network, keeps it)."""
+        return self._loads, str(self.net_file)
+
     def edge_ends(self) -> dict[str, tuple[str, str]]:
         """edge -> (its from-junction, its to-junction), every normal edge of the network (one
         call: cached per network). The autopilot asks whether an actor's road meets a junction
         of its path; asked edge by edge, a road first seen in a frame waited for SUMO's step in
         flight (2 ms) where SUMO runs in its worker process."""
-        key = (self._generation, str(self.net_file))
+        key = self._net_key()
         if getattr(self, "_edge_ends_key", None) != key:
             s = self._require()
             fr, to = s.edge.getFromJunction, s.edge.getToJunction
@@ -1788,7 +1798,7 @@ class SumoTraffic(Component):
         """lane -> ``lane.getLinks(lane)``, every lane of the network, junction lanes too (one
         call: cached per network). For the network's shape (route searches): the lights'
         states in it are those of the moment it was read."""
-        key = (self._generation, str(self.net_file))
+        key = self._net_key()
         if getattr(self, "_links_key", None) != key:
             s = self._require()
             self._links = {lane: tuple(s.lane.getLinks(lane)) for lane in s.lane.getIDList()}
@@ -1796,7 +1806,7 @@ class SumoTraffic(Component):
         return self._links
 
     def _read_links(self) -> None:
-        key = (self._generation, str(self.net_file))
+        key = self._net_key()
         if getattr(self, "_incoming_key", None) != key:
             s = self._require()
             inc: dict = {}
@@ -2026,12 +2036,7 @@ class SumoTraffic(Component):
         ego make room (after SUMO's first second, which inserts the demand's trips in
         progress), the actors `kept` go in, and the ego at `pose` (x, y, yaw, speed; None:
         where it was captured). Returns old id -> new id."""
-        old = (self._generation, str(self.net_file))
         self._generation = max(self._generation, int(carry["generation"]) + 1)
-        # what was read of this SUMO's network before (warm_network, ahead of the swap) holds
-        for attr in _NETWORK_KEYS:
-            if getattr(self, attr, None) == old:
-                setattr(self, attr, (self._generation, old[1]))
         self.warm_up()
         cx, cy = carry["center"]
         self._make_room(cx, cy, carry["keep_radius"] + SWAP_ROOM_MARGIN_M)
