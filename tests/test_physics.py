@@ -283,3 +283,47 @@ def test_a_class_in_parts_is_the_same_surface_as_its_obj(monaco_world):
     finally:
         for pw in worlds:
             pw.teardown()
+
+
+def test_a_classs_parts_are_neighbourhoods_of_the_tile(monaco_world):
+    """A mesh class cut into parts comes as parts that each cover a piece of the tile, not
+    the whole of it (``compact_order``): the boxes of a class's part bodies add up to about
+    the box of the class (in the files' own order they add up to nearly twice it, and the
+    car's chassis and every ray were tested against each part). The same for the scenery's
+    runs of colliders."""
+    from cosim.physics import TileBodies, compact_order
+
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0.0, 250.0, (2345, 2))
+    order = compact_order(xy, 500)
+    assert sorted(order) == list(range(len(xy)))
+    runs = [xy[order[i:i + 500]] for i in range(0, len(xy), 500)]
+    assert [len(r) for r in runs] == [500, 500, 500, 500, 345]
+    area = sum(float(np.prod(r.max(axis=0) - r.min(axis=0))) for r in runs)
+    assert area < 1.1 * 250.0 * 250.0           # (in the given order: about 5 x the square)
+
+    w = monaco_world
+    pw = PhysicsWorld(w).setup()
+    try:
+        checked = scenery = 0
+        for k in [k for k in w.tiles_within(0.0, 0.0, 400.0) if w.is_built(k)]:
+            tb = TileBodies()
+            for _ in pw._tile_parts(k, tb, PART_FACES):
+                pass
+            by_kind = {}
+            for i, b in enumerate(tb.bodies):
+                kind = tb.kinds[i] if i < len(tb.kinds) else "scenery"
+                lo, hi = pb.getAABB(b, -1, physicsClientId=pw.client)
+                by_kind.setdefault(kind, []).append((lo[:2], hi[:2]))
+            for kind, boxes in by_kind.items():
+                if kind == "terrain" or len(boxes) < 2:
+                    continue
+                lo = np.min([b[0] for b in boxes], axis=0)
+                hi = np.max([b[1] for b in boxes], axis=0)
+                parts = sum(float(np.prod(np.subtract(b[1], b[0]))) for b in boxes)
+                assert parts <= 1.3 * float(np.prod(hi - lo)), (k, kind, parts / float(np.prod(hi - lo)))
+                checked += 1
+                scenery += kind == "scenery"
+        assert checked >= 5 and scenery >= 1
+    finally:
+        pw.teardown()
