@@ -652,9 +652,13 @@ class Autopilot:
         i0, i1 = path.index_at(s_here), path.index_at(s_here + horizon + 10.0) + 1
         cs = float(world.chunk_size)
         ij = np.floor(path.xy[i0:i1] / cs + 0.5).astype(int)
-        keys = set(world.chunks)
-        for k, (ci, cj) in enumerate(ij):
-            if (int(ci), int(cj)) not in keys:
+        if not len(ij):
+            return None
+        keys = world.chunks
+        # (the points come in runs in one chunk: the first point of each run is tested)
+        starts = [0] + (np.flatnonzero((ij[1:] != ij[:-1]).any(axis=1)) + 1).tolist()
+        for k, (ci, cj) in zip(starts, ij[starts].tolist()):
+            if (ci, cj) not in keys:
                 return float(path.s[i0 + k])
         return None
 

@@ -163,6 +163,36 @@ def test_a_start_outside_the_built_world_is_a_clear_error(helsinki):
         start_sim(helsinki, start=(60.167088, 24.951134), duration_s=5)      # 507 m east
 
 
+def test_the_world_edge_ahead_is_the_first_path_point_outside_the_built_chunks(helsinki):
+    """The autopilot slows for the first point of its path ahead that no built chunk holds
+    (``_world_edge``, which tests the first point of each run of points in one chunk): the
+    same point as testing every point, on the run's path cut into 100 m cells of which
+    some count as built, and into none."""
+    sim = start_sim(helsinki, speed_mps=10.0, duration_s=5)
+    world, path, driver = sim.world, sim.path, sim.driver
+    chunks, size = world.chunks, world.chunk_size
+    try:
+        world.chunk_size = 100.0
+        ij = np.floor(path.xy / 100.0 + 0.5).astype(int)
+        cells = {tuple(c) for c in ij.tolist()}
+        assert len(cells) >= 4 and path.length > 300.0
+        found = 0
+        for keep in (lambda c: (c[0] + c[1]) % 3 != 0, lambda c: c[0] % 2 == 0, lambda c: True,
+                     lambda c: c == (99, 99)):
+            world.chunks = {c: {} for c in cells | {(99, 99)} if keep(c)}
+            for s_here in np.linspace(0.0, path.length - 1.0, 40):
+                for horizon in (20.0, 150.0, 2000.0):
+                    i0 = path.index_at(s_here)
+                    i1 = path.index_at(s_here + horizon + 10.0) + 1
+                    every = next((float(path.s[i]) for i in range(i0, i1) if tuple(ij[i]) not in world.chunks), None)
+                    assert driver._world_edge(path, float(s_here), horizon) == every, (keep, s_here, horizon)
+                    found += every is not None and every > path.s[i0]
+        assert found >= 20          # (edges past the first point ahead, not only at it)
+    finally:
+        world.chunks, world.chunk_size = chunks, size
+        sim.teardown()
+
+
 def test_stops_at_red_and_at_yellow_when_it_can(helsinki):
     sim = start_sim(helsinki, start=HEL_MID, goal=HEL_GOAL, speed_mps=10.0, duration_s=120)
     try:
