@@ -17,7 +17,11 @@ Real-time factors are taken side by side in one run, on the same network, demand
   demand) takes several CPU seconds, which on one core come out of the loop's time;
 * frame times twice: those of the run above, between SUMO alone's blocks, and those of a
   second run alone on the machine (the co-simulation's frames ran slower throughout between
-  the blocks, not only just after a switch).
+  the blocks, not only just after a switch);
+* with the pipelined loop on two or more CPUs, a second SUMO alone steps the same blocks on one
+  CPU while a pure-Python busy loop runs on another: how much slower SUMO's step gets when the
+  second core is busy, as it is in the pipelined loop (the physics runs while SUMO steps), and
+  so the ratio that loop could reach at most were the core busy for the whole step.
 
 The goals: co-sim >= 0.7 x SUMO-alone speed with ~400 actors, >= 20x real time; frame time
 p99.9 <= 2 x median and no frame over 50 ms caused by tile loading. The soak reports memory
@@ -56,10 +60,13 @@ def sumo_alone_cmd(net, routes, seed) -> list:
             "--collision.mingap-factor", "0", "--time-to-teleport", "120", "--ignore-route-errors"]
 
 
-def _alone_main(conn, net, routes, seed):
-    """SUMO alone in a process of its own, stepping blocks of steps on request."""
+def _alone_main(conn, net, routes, seed, cpu=None):
+    """SUMO alone in a process of its own, stepping blocks of steps on request (on CPU
+    ``cpu`` only, if given)."""
     import libsumo
 
+    if cpu is not None:
+        os.sched_setaffinity(0, {cpu})
     libsumo.start(sumo_alone_cmd(net, routes, seed))
     try:
         while (n := conn.recv()) is not None:
@@ -80,18 +87,30 @@ class SumoAlone:
     blocks that alternate with the co-simulation's: both meet the same machine, whose speed
     drifts by 20-30 % from minute to minute here (one run after the other did not compare)."""
 
-    def __init__(self, net, routes, seed):
+    def __init__(self, net, routes, seed, busy_neighbour: bool = False):
         import multiprocessing as mp
 
         ctx = mp.get_context("spawn")
         self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_alone_main, args=(child, net, routes, seed), daemon=True)
+        self.flag = self.spinner = None
+        cpu = None
+        if busy_neighbour:          # SUMO on one CPU, a busy loop on another during its blocks
+            cpu, other = sorted(os.sched_getaffinity(0))[:2]
+            self.flag = ctx.Value("i", 0, lock=False)
+            self.spinner = ctx.Process(target=_spin, args=(self.flag, other), daemon=True)
+            self.spinner.start()
+        self.proc = ctx.Process(target=_alone_main, args=(child, net, routes, seed, cpu), daemon=True)
         self.proc.start()
         self.wall, self.steps, self.actors = 0.0, [], []
 
     def run(self, n, measure=True):
+        if self.flag is not None:
+            self.flag.value = 1
+            time.sleep(0.002)       # (the loop spinning before SUMO's first step)
         self.conn.send(n)
         wall, steps, actors = self.conn.recv()
+        if self.flag is not None:
+            self.flag.value = 0
         if measure:
             self.wall += wall
             self.steps.append(steps * 1000.0)
@@ -100,9 +119,45 @@ class SumoAlone:
     def close(self):
         self.conn.send(None)
         self.proc.join(30)
+        if self.spinner is not None:
+            self.flag.value = -1
+            self.spinner.join(5)
 
 
-def cosim(world, traffic, seconds, seed, warm, speed, parallel, alone: SumoAlone, block=50):
+def _spin(flag, cpu):
+    """A pure-Python busy loop on CPU ``cpu`` while ``flag`` is 1 (asleep while 0, gone at -1):
+    the load the pipelined loop's main process puts on the second core while SUMO steps."""
+    os.sched_setaffinity(0, {cpu})
+    while (f := flag.value) >= 0:
+        if f == 1:
+            x = 0
+            for _ in range(20000):
+                x += 1
+        else:
+            time.sleep(0.0005)
+
+
+class Yardsticks:
+    """SUMO alone with the other core idle (the yardstick) and, on two or more CPUs, a second
+    SUMO alone on one CPU beside a busy loop on another: both step each block of the
+    co-simulation's steps just before it."""
+
+    def __init__(self, net, routes, seed, busy_neighbour: bool):
+        self.idle = SumoAlone(net, routes, seed)
+        self.busy = SumoAlone(net, routes, seed, busy_neighbour=True) if busy_neighbour else None
+
+    def run(self, n, measure=True):
+        self.idle.run(n, measure)
+        if self.busy is not None:
+            self.busy.run(n, measure)
+
+    def close(self):
+        self.idle.close()
+        if self.busy is not None:
+            self.busy.close()
+
+
+def cosim(world, traffic, seconds, seed, warm, speed, parallel, alone: "Yardsticks | None", block=50):
     cfg = SimConfig(world_dir=str(world), traffic=traffic, seed=seed, speed_mps=speed, duration_s=warm + seconds,
                     parallel_sumo=parallel)
     sim = Simulation(cfg).setup()
@@ -230,16 +285,25 @@ def main(argv=None):
     for name, parallel in modes:
         if not a.keep_windows:      # each run builds the window it drives into, as a new place would
             shutil.rmtree(world / "windows", ignore_errors=True)
-        alone = SumoAlone(world / w["net_file"], d.route_files, a.seed)
+        sticks = Yardsticks(world / w["net_file"], d.route_files, a.seed,
+                            busy_neighbour=parallel and len(os.sched_getaffinity(0)) >= 2)
         try:
-            rtf_co, s, f, ld, tl = cosim(world, a.traffic, a.seconds, a.seed, a.warm, a.speed, parallel, alone)
+            rtf_co, s, f, ld, tl = cosim(world, a.traffic, a.seconds, a.seed, a.warm, a.speed, parallel, sticks)
         finally:
-            alone.close()
+            sticks.close()
+        alone = sticks.idle
         rtf_sumo = a.seconds / alone.wall
         steps = np.concatenate(alone.steps)
         print(f"   SUMO alone      : x{rtf_sumo:6.1f} real time, {statistics.mean(alone.actors):.0f} actors in the simulation; "
               f"step ms: median {np.median(steps):.2f}, p99.9 {np.percentile(steps, 99.9):.2f} "
               f"({np.percentile(steps, 99.9) / np.median(steps):.2f} x median), max {steps.max():.2f}")
+        if sticks.busy is not None:
+            busy = np.concatenate(sticks.busy.steps)
+            slow = np.median(busy) / np.median(steps)
+            print(f"   SUMO alone beside a busy core (a Python loop on the other CPU): x{a.seconds / sticks.busy.wall:6.1f} "
+                  f"real time; step ms: median {np.median(busy):.2f}, {slow:.2f} x the idle core's. The pipelined "
+                  f"loop's physics keeps that core busy while SUMO steps: were it busy for the whole step, the "
+                  f"ratio could reach at most {1 / slow:.2f}")
         print(f"   co-sim {name:9s}: x{rtf_co:6.1f} real time, {s.max_vehicles} vehicles + {s.max_persons} persons, "
               f"{s.max_mirrored} mirrored at most  (load average {os.getloadavg()[0]:.2f})")
         print(f"      ratio co-sim / SUMO alone: {rtf_co / rtf_sumo:.2f}  (goal >= 0.7; and >= 20x real time)")
