@@ -113,7 +113,10 @@ def _forward_text(path: str) -> None:
 # --- pure conversions -----------------------------------------------------------------------
 def sumo_angle_to_yaw(angle_deg):
     """SUMO heading (degrees, 0 = north, clockwise) -> world yaw (radians, 0 = east, CCW),
-    wrapped to [-pi, pi). Works on scalars and arrays."""
+    wrapped to [-pi, pi). Works on scalars and arrays (a scalar in plain float arithmetic,
+    the same operations: SUMO's worker converts one every step)."""
+    if isinstance(angle_deg, (float, int)):
+        return (math.radians(90.0 - angle_deg) + math.pi) % (2.0 * math.pi) - math.pi
     yaw = np.radians(90.0 - np.asarray(angle_deg, dtype=float))
     yaw = (yaw + np.pi) % (2.0 * np.pi) - np.pi
     return float(yaw) if np.ndim(yaw) == 0 else yaw
@@ -121,6 +124,8 @@ def sumo_angle_to_yaw(angle_deg):
 
 def yaw_to_sumo_angle(yaw_rad):
     """World yaw (radians, 0 = east, CCW) -> SUMO heading (degrees in [0, 360), 0 = north, CW)."""
+    if isinstance(yaw_rad, (float, int)):
+        return (90.0 - math.degrees(yaw_rad)) % 360.0
     a = (90.0 - np.degrees(np.asarray(yaw_rad, dtype=float))) % 360.0
     return float(a) if np.ndim(a) == 0 else a
 
@@ -162,6 +167,10 @@ def _polyline_distance(P, x: float, y: float) -> float:
 
 def front_to_center(x, y, angle_deg, length):
     """SUMO front-bumper position -> body centre: centre = front - heading * length / 2."""
+    if isinstance(angle_deg, (float, int)) and isinstance(x, (float, int)) and isinstance(y, (float, int)) \
+            and isinstance(length, (float, int)):
+        a, half = math.radians(angle_deg), 0.5 * length
+        return float(x - math.sin(a) * half), float(y - math.cos(a) * half)
     a = np.radians(np.asarray(angle_deg, dtype=float))
     half = 0.5 * np.asarray(length, dtype=float)
     cx = np.asarray(x, dtype=float) - np.sin(a) * half
@@ -173,6 +182,8 @@ def front_to_center(x, y, angle_deg, length):
 
 def center_to_front(x, y, angle_deg, length):
     """Body centre -> SUMO front-bumper position (inverse of :func:`front_to_center`)."""
+    if isinstance(length, (float, int)):
+        return front_to_center(x, y, angle_deg, -length)
     return front_to_center(x, y, np.asarray(angle_deg, dtype=float), -np.asarray(length, dtype=float))
 
 
@@ -796,17 +807,18 @@ class SumoTraffic(Component):
             hl = spec["length"] / 2 + PERSON_YIELD_MARGIN_M
             hw = spec["width"] / 2 + PERSON_YIELD_MARGIN_M
             r2 = PERSON_YIELD_RANGE_M ** 2
+            VEH, POS, SPEED, ANGLE = tc.VAR_VEHICLE, tc.VAR_POSITION, tc.VAR_SPEED, tc.VAR_ANGLE
             for pid, v in res.items():
-                if tc.VAR_VEHICLE not in v or v[tc.VAR_VEHICLE] or tc.VAR_POSITION not in v:
+                if VEH not in v or v[VEH] or POS not in v:
                     continue                         # a vehicle, or a person riding in one
-                dx, dy = v[tc.VAR_POSITION][0] - cx, v[tc.VAR_POSITION][1] - cy
+                dx, dy = v[POS][0] - cx, v[POS][1] - cy
                 if dx * dx + dy * dy > r2:
                     continue
                 # a stopped person: at its own pace; one that stands by itself goes nowhere
-                sp = self._held.get(pid, v[tc.VAR_SPEED])
+                sp = self._held.get(pid, v[SPEED])
                 if sp < 0.05:
                     continue
-                a = sumo_angle_to_yaw(v[tc.VAR_ANGLE])
+                a = sumo_angle_to_yaw(v[ANGLE])
                 vx, vy = sp * math.cos(a), sp * math.sin(a)
                 lon, lat = dx * c + dy * sn, -dx * sn + dy * c
                 if abs(lon) <= hl and abs(lat) <= hw:

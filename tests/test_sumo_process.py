@@ -5,6 +5,7 @@ the same answers, and check what only the worker has: several SUMO runs at once,
 dies, answers prefetched with a step that must never be stale."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import signal
@@ -15,7 +16,7 @@ import pytest
 
 from cosim.demand import generate_demand
 from cosim.sumo_process import TrafficProcess, live_workers
-from cosim.traffic import SumoTraffic, front_to_center, sumo_angle_to_yaw
+from cosim.traffic import SumoTraffic, TrafficStats, front_to_center, sumo_angle_to_yaw
 from netgen.errors import SimulationError
 
 from sumo_fixtures import build_helsinki
@@ -79,6 +80,7 @@ def test_worker_gives_the_same_traffic_as_in_process(net, routes):
         for _ in range(300):               # let traffic fill the network
             local.step()
         want, _ = _drive(local, lane, 60)
+        want_stats = dataclasses.replace(local.stats)
     finally:
         local.teardown()
     remote = TrafficProcess(net, routes, seed=4)
@@ -88,11 +90,16 @@ def test_worker_gives_the_same_traffic_as_in_process(net, routes):
             remote.step()
         got, _ = _drive(remote, lane, 60)
         assert remote.waits < remote.calls      # steps and poses were not waited for one by one
+        got_stats = remote.stats
     finally:
         remote.teardown()
     assert sum(len(a) for _, a in want) > 200     # real traffic around the ego
     assert [t for t, _ in got] == pytest.approx([t for t, _ in want])
     assert got == want                            # same actors, same positions, same lanes
+    # the stats come back with every answer (as a tuple of their public fields)
+    fields = [f.name for f in dataclasses.fields(TrafficStats) if not f.name.startswith("_")]
+    assert type(got_stats) is TrafficStats and got_stats.steps > 300 and got_stats.max_vehicles > 50
+    assert [getattr(got_stats, f) for f in fields] == [getattr(want_stats, f) for f in fields]
 
 
 def test_step_sent_ahead_of_reading_the_last_gives_the_same_states(net, routes):

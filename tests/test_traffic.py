@@ -93,6 +93,23 @@ def test_angle_conversion_known_values():
     assert np.all((yaw >= -math.pi) & (yaw < math.pi))
 
 
+def test_a_scalars_conversion_is_the_arrays_to_the_last_bit():
+    """SUMO's worker converts the ego's pose and the persons near it one at a time, in plain
+    float arithmetic: the same operations as on arrays, so the same numbers."""
+    rng = np.random.default_rng(1)
+    ang = np.concatenate([rng.uniform(-720, 720, 3000), np.arange(-360, 360.5, 0.5)])
+    yaw = np.concatenate([rng.uniform(-10, 10, 3000), np.linspace(-2 * math.pi, 2 * math.pi, 1001)])
+    assert [sumo_angle_to_yaw(float(a)) for a in ang] == sumo_angle_to_yaw(ang).tolist()
+    assert [yaw_to_sumo_angle(float(a)) for a in yaw] == yaw_to_sumo_angle(yaw).tolist()
+    n = 2000
+    x, y, length = rng.uniform(-5e3, 5e3, n), rng.uniform(-5e3, 5e3, n), rng.uniform(0.2, 20, n)
+    for conv in (front_to_center, center_to_front):
+        cx, cy = conv(x, y, ang[:n], length)
+        got = [conv(float(x[i]), float(y[i]), float(ang[i]), float(length[i])) for i in range(n)]
+        assert got == list(zip(cx.tolist(), cy.tolist()))
+        assert all(type(a) is float and type(b) is float for a, b in got)
+
+
 def test_front_center_conversion():
     # heading east (SUMO 90 deg), 4 m long: the centre is 2 m west of the front bumper
     assert front_to_center(10.0, 5.0, 90.0, 4.0) == pytest.approx((8.0, 5.0))
