@@ -279,7 +279,11 @@ class Autopilot:
         if path is not self._path:
             self._new_path(path)
         self._st, self._s_here = st, s_here
-        self._k, _, self._lat = path.project(st.x, st.y, path.index_at(s_here))
+        pr = getattr(sim, "ego_projection", None)
+        if pr is not None and pr[0] is path and pr[1] == st.x and pr[2] == st.y and pr[3] == s_here:
+            self._k, self._lat = pr[4], pr[5]       # the loop's own projection of this state
+        else:
+            self._k, _, self._lat = path.project(st.x, st.y, path.index_at(s_here))
         actors = self._same_level(actors, path, s_here)
         v = st.speed
         t = getattr(sim, "t", 0.0)

@@ -139,6 +139,7 @@ class Simulation:
         self.last_tiles_ms = 0.0           # this frame's tile loading and unloading (physics.update)
         self._wall0 = None
         self._path_idx = 0
+        self.ego_projection = None      # (path, x, y, s, index, lateral offset) of this frame's car
         self._last_xy = None
         self._rng = random.Random(config.seed)
         self._chunks_seen: set = set()
@@ -424,6 +425,8 @@ class Simulation:
             # driving
             k, s_here, lat_off = self.path.project(st.x, st.y, self._path_idx)
             self._path_idx = k
+            # (the driver projects the same state onto the same path: it takes this one)
+            self.ego_projection = (self.path, st.x, st.y, s_here, k, lat_off)
             if self.keyboard is not None:
                 if cfg.gui:
                     from .keyboard import pybullet_keys

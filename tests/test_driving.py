@@ -193,6 +193,36 @@ def test_the_world_edge_ahead_is_the_first_path_point_outside_the_built_chunks(h
         sim.teardown()
 
 
+def test_the_driver_takes_the_loops_projection_of_the_car_and_it_is_its_own(helsinki):
+    """The loop projects the car onto its path once a frame and the autopilot takes that
+    projection (``Simulation.ego_projection``): at every frame it is the one the autopilot
+    would make itself, and a driver given another state or another s projects for itself."""
+    sim = start_sim(helsinki, speed_mps=12.0, duration_s=30)
+    try:
+        driver, taken, own = sim.driver, [], []
+        orig = driver.control
+
+        def control(st, s_here, actors, dt):
+            out = orig(st, s_here, actors, dt)
+            k, _, lat = sim.path.project(st.x, st.y, sim.path.index_at(s_here))
+            taken.append((driver._k, driver._lat))
+            own.append((k, lat))
+            return out
+
+        driver.control = control
+        for _ in range(150):
+            sim.step()
+        assert len(taken) == 150 and taken == own
+        assert len({k for k, _ in taken}) > 20          # the car moved along its path
+        # a state the loop did not project: projected anew, not taken
+        st = sim.vehicle.state()
+        sim.ego_projection = (sim.path, st.x + 1.0, st.y, 0.0, 0, 99.0)
+        orig(st, sim.path.project(st.x, st.y, driver._k)[1], sim.last_snapshot, 0.1)
+        assert driver._lat != 99.0 and abs(driver._lat) < 3.0
+    finally:
+        sim.teardown()
+
+
 def test_stops_at_red_and_at_yellow_when_it_can(helsinki):
     sim = start_sim(helsinki, start=HEL_MID, goal=HEL_GOAL, speed_mps=10.0, duration_s=120)
     try:
