@@ -97,7 +97,8 @@ class SumoAlone:
         if busy_neighbour:          # SUMO on one CPU, a busy loop on another during its blocks
             cpu, other = sorted(os.sched_getaffinity(0))[:2]
             self.flag = ctx.Value("i", 0, lock=False)
-            self.spinner = ctx.Process(target=_spin, args=(self.flag, other), daemon=True)
+            self.wake = ctx.Event()
+            self.spinner = ctx.Process(target=_spin, args=(self.flag, self.wake, other), daemon=True)
             self.spinner.start()
         self.proc = ctx.Process(target=_alone_main, args=(child, net, routes, seed, cpu), daemon=True)
         self.proc.start()
@@ -106,10 +107,12 @@ class SumoAlone:
     def run(self, n, measure=True):
         if self.flag is not None:
             self.flag.value = 1
+            self.wake.set()
             time.sleep(0.002)       # (the loop spinning before SUMO's first step)
         self.conn.send(n)
         wall, steps, actors = self.conn.recv()
         if self.flag is not None:
+            self.wake.clear()       # (before the flag: the loop then blocks, it does not poll)
             self.flag.value = 0
         if measure:
             self.wall += wall
@@ -121,20 +124,25 @@ class SumoAlone:
         self.proc.join(30)
         if self.spinner is not None:
             self.flag.value = -1
+            self.wake.set()
             self.spinner.join(5)
 
 
-def _spin(flag, cpu):
-    """A pure-Python busy loop on CPU ``cpu`` while ``flag`` is 1 (asleep while 0, gone at -1):
-    the load the pipelined loop's main process puts on the second core while SUMO steps."""
+def _spin(flag, wake, cpu):
+    """A pure-Python busy loop on CPU ``cpu`` while ``flag`` is 1, gone at -1: the load the
+    pipelined loop's main process puts on the second core while SUMO steps. Between SUMO
+    alone's blocks it sleeps on ``wake`` (an event: no polling, which would wake it thousands
+    of times a second and take the CPU from the co-simulation's processes in their blocks)."""
     os.sched_setaffinity(0, {cpu})
-    while (f := flag.value) >= 0:
-        if f == 1:
+    while True:
+        wake.wait()
+        f = flag.value
+        if f < 0:
+            return
+        while flag.value == 1:
             x = 0
             for _ in range(20000):
                 x += 1
-        else:
-            time.sleep(0.0005)
 
 
 class Yardsticks:
