@@ -17,6 +17,10 @@ default) per ``step``::
         done = terminated or truncated
     env.close()
 
+``DrivingEnv(config, render_mode="rgb_array")`` loads the world's visual meshes (as
+``SimConfig(render=True)``), and ``render()`` returns PyBullet's chase-camera picture
+(270 x 480 x 3, uint8).
+
 Gymnasium is *not* a dependency: the class follows its API (``reset(seed=None, options=None)
 -> (obs, info)``, ``step(action) -> (obs, reward, terminated, truncated, info)``, ``close()``)
 and, when ``gymnasium`` is importable, subclasses ``gymnasium.Env`` with matching
@@ -138,6 +142,8 @@ class DrivingEnv(_Base):
             cfg = copy.deepcopy(self.base_config)
             if seed is not None:
                 cfg.seed = int(seed)
+            if self.render_mode == "rgb_array":
+                cfg.render = True       # (a headless world has no visual meshes: render() drew none)
             self._seed = cfg.seed
             sim = Simulation(cfg)
             sim.setup()
@@ -204,6 +210,7 @@ class DrivingEnv(_Base):
         return self._observe(ego), reward, terminated, truncated, info
 
     def render(self):
+        """The chase camera's RGB picture (with ``render_mode="rgb_array"``: the world drawn)."""
         if self.sim is None:
             return None
         return self.sim.camera_image(480, 270)

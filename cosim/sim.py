@@ -162,6 +162,7 @@ class Simulation:
         self._swap_hold = 0                # frames left without reloading stale tiles
         self._extend_retry_t = 0.0         # no route extension before this sim time
         self._lc_stuck_since = None        # standing for a lane change since (LANE_CHANGE_GIVE_UP_S)
+        self._warned_no_visuals = False    # camera_image without visual meshes (said once)
         self._extension_asked = None       # (route, generator state) of the extension prepared
         self._setup_done = False
         self._gc_frozen = False
@@ -810,7 +811,14 @@ class Simulation:
 
     def camera_image(self, width: int = 480, height: int = 270, view: str = "chase"):
         """An RGB image (height, width, 3) from PyBullet's camera: 'chase' (behind and above
-        the car) or 'driver' (from the windscreen, looking ahead)."""
+        the car) or 'driver' (from the windscreen, looking ahead). The world is drawn only when
+        its visual meshes are loaded (``SimConfig(render=True)`` or ``gui=True``); a headless
+        run loads none (they cost time and memory), and its picture shows the cars alone (a
+        warning says so, once)."""
+        if not self.physics.visuals and not self._warned_no_visuals:
+            self._warned_no_visuals = True
+            log.warning("camera_image: this simulation loaded no visual meshes, so the picture shows "
+                        "no roads, terrain or buildings; set SimConfig(render=True) to draw them")
         st = self.vehicle.state()
         c, s = math.cos(st.yaw), math.sin(st.yaw)
         if view == "driver":

@@ -13,6 +13,7 @@ is lifted so that runs are reproducible."""
 from __future__ import annotations
 
 import json
+import logging
 import math
 
 import numpy as np
@@ -527,6 +528,38 @@ def test_env_step_api_and_callback_driver(helsinki):
         sim.teardown()
     assert len(calls) == 100
     assert math.hypot(x1.x - x0.x, x1.y - x0.y) > 40.0 and max(lats) < 1.0
+
+
+def test_env_rgb_array_render_draws_the_world_and_a_headless_camera_says_it_cannot(helsinki, caplog):
+    """``DrivingEnv(render_mode="rgb_array")`` loads the world's visual meshes, so that
+    ``render()`` shows the road and the ground; a headless simulation loads none, and its
+    camera image (the cars alone on the background) comes with a warning. The env's render
+    was the empty background with the car in it."""
+    from cosim.env import DrivingEnv
+
+    def background_share(img) -> float:            # PyBullet's sky: near-white
+        low = np.asarray(img)[img.shape[0] // 2:, :, :3].astype(int)
+        return float(np.mean(low.min(axis=2) > 235))
+
+    env = DrivingEnv(SimConfig(world_dir=helsinki, traffic="none", start=HEL_MID, speed_mps=10.0, duration_s=20),
+                     render_mode="rgb_array")
+    try:
+        env.reset(seed=1)
+        img = env.render()
+    finally:
+        env.close()
+    assert img.shape == (270, 480, 3) and background_share(img) < 0.2
+    sim = start_sim(helsinki, start=HEL_MID, duration_s=20)
+    try:
+        sim.step()
+        with caplog.at_level(logging.WARNING, logger="cosim"):
+            bare = sim.camera_image(480, 270)
+            sim.camera_image(480, 270)
+    finally:
+        sim.teardown()
+    assert background_share(bare) > 0.8
+    said = [r for r in caplog.records if "no visual meshes" in r.getMessage()]
+    assert len(said) == 1 and "render=True" in said[0].getMessage()
 
 
 def _arc_path(radius: float, angle_deg: float):
