@@ -170,6 +170,14 @@ class PhysicsWorld:
 
     # --- lifecycle ------------------------------------------------------------------------
     def setup(self):
+        if self.gui:
+            from netgen.errors import SimulationError
+
+            from .display import display_problem
+
+            why = display_problem()       # (PyBullet's window thread ends the process without one)
+            if why:
+                raise SimulationError(f"PyBullet cannot open its window: {why}; run without --gui")
         self.client = pb.connect(pb.GUI if self.gui else pb.DIRECT)
         if self.client < 0:
             from netgen.errors import SimulationError

@@ -68,6 +68,7 @@ VEHICLE_RECOUNT_STEPS = 10   # SUMO's vehicles are counted every this many steps
 # and a little for the ego's front in SUMO versus its centre asked about: _context_results
 # checks). The context's cost in SUMO's step goes with the actors in it (20 m: 10 % more)
 CONTEXT_MARGIN = 12.0
+TRACI_START_TIMEOUT_S = 120   # seconds a TraCI SUMO has to load its network and open its port
 DEFAULT_CONTEXT_RADIUS = 150.0
 EGO_JOINT_NUDGE_M = 0.3       # a front bumper in the gap at a lane joint is mapped this far on (_across_joint)
 STANDOFF_CHAIN = 2            # release_standoff: standing vehicles between the one taken out and the ego
@@ -450,6 +451,12 @@ class SumoTraffic(Component):
         if self._sim is not None:
             raise SimulationError("SumoTraffic.setup(): this simulation is already running")
         self._preflight()
+        if self.gui:
+            from .display import display_problem
+
+            why = display_problem()
+            if why:
+                raise SimulationError(f"sumo-gui cannot open its window: {why}; run without --sumo-gui")
         from cosim.demand import sumo_env, sumo_home
         home = sumo_home()
         env = sumo_env()
@@ -500,20 +507,13 @@ class SumoTraffic(Component):
             self._exc = (libsumo.TraCIException,) + ((libsumo.FatalTraCIError,)
                                                       if hasattr(libsumo, "FatalTraCIError") else ())
         else:
-            import subprocess
             import traci
             self._label = f"cosim-{id(self):x}-{self._generation}"
+            captured = os.path.join(self._tmpdir, "sumo-stderr.txt")
             try:
-                traci.start(cmd, label=self._label, doSwitch=False,
-                            stdout=subprocess.DEVNULL, numRetries=100)
-                self._sim = traci.getConnection(self._label)
+                self._sim = self._start_traci(cmd, captured)
             except Exception as e:
-                msg = self._sumo_error(e, err_log)
-                try:
-                    traci.switch(self._label)
-                    traci.close(False)
-                except Exception:
-                    pass
+                msg = self._sumo_error(e, err_log, captured)
                 self._cleanup_tmp()
                 raise SimulationError(f"SUMO could not start on {self.net_file.name}: {msg}") from None
             self._exc = (traci.exceptions.TraCIException, traci.exceptions.FatalTraCIError)
@@ -523,6 +523,43 @@ class SumoTraffic(Component):
         except self._exc as e:
             self.teardown()
             raise SimulationError(f"SUMO setup failed: {self._sumo_error(e, err_log)}") from None
+
+    def _start_traci(self, cmd: list, captured: str):
+        """Start SUMO (or sumo-gui) as a TraCI server and connect to it. ``traci.start`` starts
+        SUMO again on another port whenever it ends before the connection, 100 times, printing
+        as it goes: a sumo-gui without a display took minutes to fail. Here a SUMO that ends
+        stops the start at once (its stderr, in ``captured``, names why); only a port taken
+        between choosing and binding it is tried again. Waits up to TRACI_START_TIMEOUT_S
+        for SUMO to load."""
+        import contextlib
+        import io
+        import subprocess
+
+        import traci
+        from sumolib.miscutils import getFreeSocketPort
+
+        for attempt in range(3):
+            port = getFreeSocketPort()
+            with open(captured, "wb") as err:
+                proc = subprocess.Popen(cmd + ["--remote-port", str(port)], stdout=subprocess.DEVNULL,
+                                        stderr=err)
+            try:
+                with contextlib.redirect_stdout(io.StringIO()):   # (traci prints each retry)
+                    traci.init(port, numRetries=TRACI_START_TIMEOUT_S, label=self._label, proc=proc,
+                               doSwitch=False)
+                return traci.getConnection(self._label)
+            except BaseException:
+                if proc.poll() is None:
+                    proc.kill()
+                proc.wait()
+                try:
+                    with open(captured, encoding="utf-8", errors="replace") as f:
+                        text = f.read().lower()
+                except OSError:
+                    text = ""
+                if attempt < 2 and ("port" in text or "bind" in text or "address" in text):
+                    continue
+                raise
 
     def teardown(self) -> None:
         """Close SUMO (idempotent)."""
@@ -594,6 +631,11 @@ class SumoTraffic(Component):
             msg = " ".join([msg] + extra)
         else:
             msg = str(exc) or type(exc).__name__
+            # what a SUMO that ended said on stderr without "Error:" (sumo-gui: "FXApp::openDisplay:
+            # unable to open display :0.0")
+            said = [ln for ln in lines if "proj.db" not in ln and not ln.startswith("Warning:")]
+            if said:
+                msg = f"{msg} ({said[-1]})"
         return " ".join(msg.split())
 
     def _after_start(self):

@@ -354,12 +354,47 @@ def test_each_wrong_input_is_an_error_that_says_which_and_why(win, qtbot):
     assert win.state is S.READY
 
 
-def test_pybullet_window_checkbox_needs_a_display(qtbot, worlds, monkeypatch):
+def test_display_check_asks_the_x_server(tmp_path):
+    """A display is there when an X server takes a connection at $DISPLAY: a Unix socket
+    ``X<n>`` for ``:n``, TCP port 6000 + n for ``host:n`` (real sockets here)."""
+    import socket
+
+    from cosim.display import display_problem
     from ui.app import has_display
 
-    assert has_display({"DISPLAY": ":0"})
-    if sys.platform.startswith("linux"):
-        assert not has_display({})
+    if not sys.platform.startswith("linux"):
+        assert display_problem({}) is None
+        return
+    assert display_problem({}) == "there is no display (DISPLAY is not set)" and not has_display({})
+    assert "not a display name" in display_problem({"DISPLAY": "nonsense"})
+    x11 = tmp_path / "x11"
+    x11.mkdir()
+    unix = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    unix.bind(str(x11 / "X7"))
+    unix.listen(1)
+    try:
+        assert display_problem({"DISPLAY": ":7"}, x11_dir=str(x11)) is None
+        assert display_problem({"DISPLAY": ":7.0"}, x11_dir=str(x11)) is None
+        assert display_problem({"DISPLAY": ":8"}, x11_dir=str(x11)) == "no X server answers at DISPLAY=:8"
+    finally:
+        unix.close()
+    assert display_problem({"DISPLAY": ":7"}, x11_dir=str(x11)) == "no X server answers at DISPLAY=:7"
+    tcp = socket.socket()
+    for n in range(50, 400):                 # a free port 6000 + n on the loopback
+        try:
+            tcp.bind(("127.0.0.1", 6000 + n))
+            break
+        except OSError:
+            continue
+    tcp.listen(1)
+    try:
+        assert display_problem({"DISPLAY": f"127.0.0.1:{n}.0"}) is None
+    finally:
+        tcp.close()
+    assert display_problem({"DISPLAY": f"127.0.0.1:{n}"}) == f"no X server answers at DISPLAY=127.0.0.1:{n}"
+
+
+def test_pybullet_window_checkbox_needs_a_display(qtbot, worlds, monkeypatch):
     monkeypatch.delenv("DISPLAY", raising=False)
     w = make_window(qtbot, worlds)
     try:

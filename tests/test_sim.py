@@ -18,6 +18,7 @@ from cosim.config import SimConfig
 from cosim.sim import Simulation
 from cosim.sumo_process import live_workers
 from cosim.traffic import front_to_center, sumo_angle_to_yaw
+from netgen.errors import SimulationError
 from netgen.build import build_world
 from netgen.config import WorldConfig
 
@@ -159,6 +160,45 @@ def test_start_far_from_roads_is_a_clear_error(motorway_world, tmp_path):
                        timeout=600, cwd=tmp_path)
     assert r.returncode == 2
     assert r.stderr.strip().splitlines()[-1].startswith("error: start is ") and "from the nearest road" in r.stderr
+
+
+@pytest.mark.parametrize("flag,names", [(["--gui"], "--gui"), (["--sumo-gui", "--backend", "traci"], "--sumo-gui")])
+def test_a_window_without_a_display_is_a_clear_error(motorway_world, tmp_path, flag, names):
+    """``--gui`` and ``--sumo-gui`` where no X server answers: a one-line error naming the
+    option, at once. PyBullet's window thread ended the process with "cannot connect to X
+    server" (exit code 1, no error of ours); sumo-gui ended before TraCI connected, and
+    ``traci.start`` started it again for minutes."""
+    import time
+
+    env = {k: v for k, v in os.environ.items() if k != "DISPLAY"}
+    for display in (None, ":93"):           # not set; set, with no X server there
+        if display:
+            env["DISPLAY"] = display
+        t0 = time.monotonic()
+        r = subprocess.run([sys.executable, "-m", "cosim", "run", "--world", str(motorway_world), "--duration", "1",
+                            "--traffic", "none", *flag], capture_output=True, text=True, timeout=300, cwd=tmp_path,
+                           env=env)
+        last = r.stderr.strip().splitlines()[-1]
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
+        assert last.startswith("error: ") and f"run without {names}" in last, last
+        assert ("DISPLAY is not set" in last) if display is None else (f"no X server answers at DISPLAY={display}" in last)
+        assert time.monotonic() - t0 < 120
+
+
+def test_sumo_that_ends_at_start_under_traci_is_reported_at_once(motorway_world, tmp_path):
+    """A SUMO that ends before TraCI connects (here: an option it does not know) stops the
+    start at once with SUMO's own words; ``traci.start`` started it again up to 100 times."""
+    import time
+
+    from cosim.traffic import SumoTraffic
+
+    w = json.loads((motorway_world / "world.json").read_text())
+    t = SumoTraffic(motorway_world / w["net_file"], backend="traci", extra_args=["--no-such-option"])
+    t0 = time.monotonic()
+    with pytest.raises(SimulationError) as e:
+        t.setup()
+    assert time.monotonic() - t0 < 30
+    assert "no-such-option" in str(e.value) and "\n" not in str(e.value)
 
 
 def test_next_window_built_in_background_and_swapped_in(motorway_world):

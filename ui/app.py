@@ -16,7 +16,6 @@ Keys while the simulation runs and the focus is not in a text field: arrows / WA
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -29,6 +28,7 @@ from PyQt5.QtWidgets import (QAbstractSpinBox, QApplication, QButtonGroup, QChec
                              QSizePolicy, QSplitter, QStatusBar, QVBoxLayout, QWidget)
 
 from cosim.config import DENSITIES, MAX_SPEED_MPS
+from cosim.display import display_problem
 from netgen.config import MAX_RINGS, QUALITY
 
 from . import validation as V
@@ -41,11 +41,9 @@ ERROR_STYLE = "border: 1px solid #d0302a; background: #fff3f2;"
 
 
 def has_display(env=None) -> bool:
-    """Can PyBullet open its own 3D window here? (It needs X11 on Linux.)"""
-    env = os.environ if env is None else env
-    if sys.platform.startswith("linux"):
-        return bool(env.get("DISPLAY"))
-    return True
+    """Can PyBullet open its own 3D window here? (It needs an X server on Linux:
+    ``cosim.display.display_problem``.)"""
+    return display_problem(env) is None
 
 
 class CameraView(QWidget):
@@ -233,11 +231,12 @@ class MainWindow(QMainWindow):
         gl.addWidget(self.ed_dest_lon, 1, 2)
         gl.addWidget(self.btn_goal, 2, 1, 1, 2)
         self.chk_gui = QCheckBox("PyBullet 3D window")
-        if has_display():
+        why = display_problem()
+        if why is None:
             self.chk_gui.setToolTip("open PyBullet's own 3D window beside the launcher")
         else:
             self.chk_gui.setEnabled(False)
-            self.chk_gui.setToolTip("no display here (DISPLAY is not set): PyBullet cannot open a window")
+            self.chk_gui.setToolTip(f"no display here ({why}): PyBullet cannot open a window")
         self.chk_realtime = QCheckBox("Real time")
         self.chk_realtime.setChecked(realtime)
         self.chk_realtime.setToolTip("pace the simulation to the wall clock (off: as fast as it runs)")
