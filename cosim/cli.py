@@ -252,10 +252,18 @@ def cmd_run(a):
     return 0
 
 
-def cmd_gui(a):
-    from ui.app import main as gui_main
+def add_gui_args(p) -> None:
+    """The launcher's options (``cosim gui`` and ``python -m ui.app``)."""
+    p.add_argument("--preset", help="preset selected at start")
+    p.add_argument("--worlds", metavar="DIR",
+                   help="where built worlds are kept (default: $COSIM_CACHE/worlds or ~/.cache/cosim/worlds)")
+    p.add_argument("--no-realtime", action="store_true", help="run as fast as possible, not at wall-clock pace")
 
-    return gui_main([])
+
+def cmd_gui(a):
+    from ui.app import launch
+
+    return launch(preset=a.preset, worlds=a.worlds, realtime=not a.no_realtime)
 
 
 def make_parser() -> argparse.ArgumentParser:
@@ -280,7 +288,9 @@ def make_parser() -> argparse.ArgumentParser:
     add_export_parser(sub)
 
     gp = sub.add_parser("gui", help="the desktop launcher (PyQt5) with a live view of the simulation",
-                        description="Open the PyQt5 launcher: pick a place, check the inputs, build and drive.")
+                        description="Open the PyQt5 launcher: pick a place, check the inputs, build and drive. "
+                                    "Needs a display (QT_QPA_PLATFORM=offscreen runs it without one).")
+    add_gui_args(gp)
     gp.set_defaults(func=cmd_gui)
 
     r = sub.add_parser("run", help="run the co-simulation (headless by default)",

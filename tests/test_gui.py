@@ -394,6 +394,18 @@ def test_display_check_asks_the_x_server(tmp_path):
     assert display_problem({"DISPLAY": f"127.0.0.1:{n}"}) == f"no X server answers at DISPLAY=127.0.0.1:{n}"
 
 
+def test_cosim_gui_without_a_display_is_a_clear_error(tmp_path):
+    """``cosim gui`` (its options passed on) where no X server answers and Qt would use its
+    default platform: a one-line error naming the way out, not Qt's abort (exit code 134)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "QT_QPA_PLATFORM")}
+    r = subprocess.run([sys.executable, "-m", "cosim", "gui", "--preset", "kouvola", "--no-realtime"],
+                       capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr[-2000:]
+    assert lines[0] == ("error: the launcher needs a display: there is no display (DISPLAY is not set) "
+                        "(QT_QPA_PLATFORM=offscreen runs it without one)")
+
+
 def test_pybullet_window_checkbox_needs_a_display(qtbot, worlds, monkeypatch):
     monkeypatch.delenv("DISPLAY", raising=False)
     w = make_window(qtbot, worlds)

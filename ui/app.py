@@ -16,6 +16,7 @@ Keys while the simulation runs and the focus is not in a text field: arrows / WA
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -30,6 +31,7 @@ from PyQt5.QtWidgets import (QAbstractSpinBox, QApplication, QButtonGroup, QChec
 from cosim.config import DENSITIES, MAX_SPEED_MPS
 from cosim.display import display_problem
 from netgen.config import MAX_RINGS, QUALITY
+from netgen.errors import CosimError, SimulationError
 
 from . import validation as V
 from .mapview import MapView
@@ -725,19 +727,35 @@ class MainWindow(QMainWindow):
         self._shutdown_threads(timeout_ms)
 
 
-def main(argv=None) -> int:
-    """``cosim gui``: open the launcher; returns the Qt event loop's exit status."""
-    p = argparse.ArgumentParser(prog="cosim gui", description="Desktop launcher with a live view of the simulation.")
-    p.add_argument("--preset", help="preset selected at start")
-    p.add_argument("--worlds", metavar="DIR",
-                   help="where built worlds are kept (default: $COSIM_CACHE/worlds or ~/.cache/cosim/worlds)")
-    p.add_argument("--no-realtime", action="store_true", help="run as fast as possible, not at wall-clock pace")
-    a = p.parse_args(argv)
+def launch(preset: str | None = None, worlds: str | None = None, realtime: bool = True) -> int:
+    """Open the launcher; returns the Qt event loop's exit status. Qt's default platform on
+    Linux (xcb) aborts the process without an X server: that is a one-line SimulationError
+    here, unless QT_QPA_PLATFORM names another platform (``offscreen`` for screenshots)."""
+    platform = os.environ.get("QT_QPA_PLATFORM", "")
+    if not QApplication.instance() and platform in ("", "xcb") and sys.platform.startswith("linux"):
+        why = display_problem()
+        if why:
+            raise SimulationError(f"the launcher needs a display: {why} (QT_QPA_PLATFORM=offscreen runs it "
+                                  "without one)")
     app = QApplication.instance() or QApplication(sys.argv[:1])
-    w = MainWindow(out_root=a.worlds, realtime=not a.no_realtime, preset=a.preset)
+    w = MainWindow(out_root=worlds, realtime=realtime, preset=preset)
     app.aboutToQuit.connect(w._shutdown_threads)
     w.show()
     return int(app.exec_())
+
+
+def main(argv=None) -> int:
+    """``python -m ui.app``: the same as ``cosim gui``."""
+    from cosim.cli import add_gui_args
+
+    p = argparse.ArgumentParser(prog="cosim gui", description="Desktop launcher with a live view of the simulation.")
+    add_gui_args(p)
+    a = p.parse_args(argv)
+    try:
+        return launch(preset=a.preset, worlds=a.worlds, realtime=not a.no_realtime)
+    except CosimError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return e.exit_code
 
 
 if __name__ == "__main__":
