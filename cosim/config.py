@@ -17,9 +17,13 @@ A scenario file is TOML with four tables, each optional::
     telemetry = "run.jsonl"
 
 Relative paths in a scenario (osm, dem, out, telemetry) are relative to the scenario file.
+Each value is checked against its field's type as the file is read (``_typed``): a value of
+another type, an unknown setting or table is a one-line InputError naming them.
 """
 from __future__ import annotations
 
+import types
+import typing
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -114,7 +118,15 @@ class SimConfig:
         unknown = set(d) - {"world", "traffic", "ego", "run", "name"}
         if unknown:
             raise InputError(f"scenario {path.name}: unknown table(s) {', '.join(sorted(unknown))}")
+        for table in ("world", "traffic", "ego", "run"):
+            if not isinstance(d.get(table, {}), dict):
+                raise InputError(f"scenario {path.name}: [{table}] must be a table")
         w = dict(d.get("world", {}))
+        world_hints = typing.get_type_hints(WorldConfig)
+        for k, v in w.items():
+            if k in world_hints and not (k in ("bbox", "center") and isinstance(v, str)) \
+                    and not (k == "dem" and isinstance(v, str)):
+                w[k] = _typed(path.name, "world", k, v, world_hints[k])
         for k in ("osm", "out"):
             if isinstance(w.get(k), str):
                 w[k] = str((base / w[k]).resolve())
@@ -136,12 +148,12 @@ class SimConfig:
                    "sensor_range_m": "sensor_range_m", "mirror_radius_m": "mirror_radius_m",
                    "telemetry": "telemetry", "gui": "gui", "realtime": "realtime", "render": "render",
                    "repeatable": "repeatable"}
+        hints = typing.get_type_hints(cls)
         for table, tname in ((t, "traffic"), (e, "ego"), (r, "run")):
             for k, v in table.items():
                 if k not in mapping:
                     raise InputError(f"scenario {path.name}: unknown setting [{tname}] {k}")
-                if k in ("start", "goal") and v is not None:
-                    v = tuple(v)
+                v = _typed(path.name, tname, k, v, hints[mapping[k]])
                 if k == "telemetry" and v:
                     v = str((base / v).resolve())
                 setattr(cfg, mapping[k], v)
@@ -149,3 +161,59 @@ class SimConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def _typed(file: str, table: str, key: str, value, hint):
+    """``value`` of a scenario's ``[table] key`` checked against its field's type ``hint`` (and
+    converted: an int where a float goes, a list where a tuple goes); a value of another
+    type is a one-line InputError naming the file, the setting and what it must be."""
+    ok, out = _fits(value, hint)
+    if not ok:
+        raise InputError(f"scenario {file}: [{table}] {key} must be {_describe(hint)}, got {value!r}")
+    return out
+
+
+def _fits(value, hint) -> tuple[bool, object]:
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        for a in args:
+            ok, out = _fits(value, a)
+            if ok:
+                return True, out
+        return False, None
+    if hint is type(None):
+        return value is None, None
+    if hint is bool:
+        return isinstance(value, bool), value
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool), value
+    if hint is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        return ok, float(value) if ok else None
+    if hint is str:
+        return isinstance(value, str), value
+    if origin in (tuple, list):
+        if not isinstance(value, (list, tuple)):
+            return False, None
+        items = args if origin is tuple else (args[0],) * len(value) if args else (object,) * len(value)
+        if len(items) != len(value):
+            return False, None
+        out = []
+        for v, a in zip(value, items):
+            ok, o = _fits(v, a) if a is not object else (True, v)
+            if not ok:
+                return False, None
+            out.append(o)
+        return True, tuple(out) if origin is tuple else out
+    return True, value
+
+
+def _describe(hint) -> str:
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_describe(a) for a in args if a is not type(None))
+    if origin is tuple:
+        return f"a list of {len(args)} {'numbers' if all(a in (int, float) for a in args) else 'values'}"
+    if origin is list:
+        return "a list"
+    return {bool: "true or false", int: "a whole number", float: "a number", str: "a string"}.get(hint, str(hint))

@@ -9,6 +9,7 @@ import math
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pybullet as pb
@@ -199,6 +200,54 @@ def test_sumo_that_ends_at_start_under_traci_is_reported_at_once(motorway_world,
         t.setup()
     assert time.monotonic() - t0 < 30
     assert "no-such-option" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_scenario_files_load_typed_and_their_mistakes_are_named(tmp_path):
+    """The shipped scenarios load (relative paths resolved against the file); a value of the
+    wrong type, an unknown setting or table, or a file that is not TOML is a one-line
+    InputError naming the file and the setting. A string where a number goes ended the run
+    with a bare ValueError (exit code 1)."""
+    from cosim.config import SimConfig
+    from netgen.errors import InputError
+
+    repo = Path(__file__).resolve().parents[1]
+    got = {f.stem: SimConfig.from_toml(f) for f in sorted((repo / "scenarios").glob("*.toml"))}
+    assert set(got) == {"helsinki-city-block", "kouvola-freeway", "kouvola-neighbourhood"}
+    free = got["kouvola-freeway"]
+    assert (free.world.preset, free.traffic, free.seed, free.speed_mps, free.duration_s) == \
+        ("kouvola-motorway", "normal", 3, 25.0, 180.0)
+    assert free.telemetry == str((repo / "out" / "kouvola-freeway.jsonl").resolve())
+    city = got["helsinki-city-block"]
+    assert isinstance(city.goal, tuple) and len(city.goal) == 2 and city.world.preset == "helsinki"
+
+    ok = tmp_path / "ok.toml"
+    ok.write_text('[world]\npreset = "kouvola"\nchunks = 0\n[traffic]\ndensity = 12\nseed = 4\n'
+                  '[ego]\nstart = [60.53, 26.945]\nspeed_mps = 8\n[run]\nduration_s = 30\ntelemetry = "t/x.jsonl"\n')
+    c = SimConfig.from_toml(ok)
+    assert (c.traffic, c.seed, c.start, c.speed_mps, c.duration_s) == (12.0, 4, (60.53, 26.945), 8.0, 30.0)
+    assert isinstance(c.speed_mps, float) and c.telemetry == str(tmp_path / "t" / "x.jsonl")
+    bad = {
+        '[world]\npreset = "kouvola"\n[run]\nduration_s = "five"\n': "[run] duration_s must be a number, got 'five'",
+        '[world]\npreset = "kouvola"\nchunks = "one"\n': "[world] chunks must be a whole number, got 'one'",
+        '[world]\npreset = "kouvola"\n[ego]\nstart = [60.5, "x"]\n': "[ego] start must be a list of 2 numbers",
+        '[world]\npreset = "kouvola"\n[traffic]\nseed = 2.5\n': "[traffic] seed must be a whole number, got 2.5",
+        '[world]\npreset = "kouvola"\n[run]\nrealtime = "yes"\n': "[run] realtime must be true or false",
+        '[world]\npreset = "kouvola"\n[run]\nduraton_s = 5\n': "unknown setting [run] duraton_s",
+        '[place]\npreset = "kouvola"\n': "unknown table(s) place",
+        'world = 3\n': "[world] must be a table",
+        'this is [not toml\n': "Expected '=' after a key",
+    }
+    for text, says in bad.items():
+        f = tmp_path / "bad.toml"
+        f.write_text(text)
+        with pytest.raises(InputError) as e:
+            SimConfig.from_toml(f)
+        assert str(e.value).startswith("scenario bad.toml: ") and says in str(e.value), (text, str(e.value))
+    f.write_text('[world]\npreset = "kouvola"\n[run]\nduration_s = "five"\n')
+    r = subprocess.run([sys.executable, "-m", "cosim", "run", str(f)], capture_output=True, text=True, timeout=120,
+                       cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        "error: scenario bad.toml: [run] duration_s must be a number, got 'five'"]
 
 
 def test_next_window_built_in_background_and_swapped_in(motorway_world):
