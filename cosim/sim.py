@@ -325,7 +325,9 @@ class Simulation:
             if g["dist"] > self.cfg.max_snap_m:
                 raise InputError(f"goal is {g['dist']:.0f} m from the nearest road for cars")
             if not plan["route"]:
-                raise InputError("goal unreachable: no route by road from the start to the goal")
+                on = f"{g['street']} (lane {g['lane']})" if g.get("street") else f"lane {g['lane']}"
+                raise InputError(f"goal unreachable: its nearest road for cars, {on}, {g['dist']:.0f} m from it, "
+                                 f"cannot be reached by road from the car's position")
             self.goal_xy = (g["x"], g["y"])
             self.summary.arrived = False
             self.snap_info.update({"goal_snap_m": round(g["dist"], 2), "route_length_m": round(plan["length"], 1),

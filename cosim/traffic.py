@@ -1698,7 +1698,11 @@ class SumoTraffic(Component):
         out = _plan(lane, pos, rng_state)
         if goal_xy is not None:
             glane, gpos, gpx, gpy, _, gdist = self.snap_lane(float(goal_xy[0]), float(goal_xy[1]))
-            out["goal"] = dict(lane=glane, pos=gpos, x=gpx, y=gpy, dist=gdist)
+            try:
+                street = s.edge.getStreetName(glane.rsplit("_", 1)[0])
+            except self._exc:
+                street = ""
+            out["goal"] = dict(lane=glane, pos=gpos, x=gpx, y=gpy, dist=gdist, street=street)
             if gdist > max_goal_snap_m:
                 return dict(out, route=[], path=None)
             best = None

@@ -157,6 +157,16 @@ def test_goal_far_from_roads_is_a_clear_error(helsinki):
         start_sim(helsinki, goal=HEL_OFF_ROAD, duration_s=5)
 
 
+def test_an_unreachable_goal_names_its_road(helsinki):
+    """A goal whose nearest road for cars no route reaches (Helsinki 2019: Töölönlahdenkatu, a
+    one-way island entered from Postikuja, itself entered from no road for cars): the error
+    names the street and the lane it snapped to."""
+    with pytest.raises(InputError) as e:
+        start_sim(helsinki, goal=(60.1735, 24.9380), duration_s=5)
+    assert str(e.value) == ("goal unreachable: its nearest road for cars, Töölönlahdenkatu (lane 8034129#0_1), "
+                            "29 m from it, cannot be reached by road from the car's position")
+
+
 def test_a_start_outside_the_built_world_is_a_clear_error(helsinki):
     """SUMO's network reaches beyond the built chunks (netconvert gets the whole extract): a
     start on a road there had no ground under the car (its height NaN, standing for good)."""

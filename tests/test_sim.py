@@ -250,6 +250,26 @@ def test_scenario_files_load_typed_and_their_mistakes_are_named(tmp_path):
         "error: scenario bad.toml: [run] duration_s must be a number, got 'five'"]
 
 
+def test_the_readmes_python_example_runs_as_written(tmp_path):
+    """The README's Python API example, run as it stands (a fresh cache: it builds Helsinki):
+    its second destination lay on an island of one-way streets no route reaches, and the
+    example ended in "goal unreachable"."""
+    repo = Path(__file__).resolve().parents[1]
+    text = (repo / "README.md").read_text()
+    start = text.index("## Python API")
+    code = text[text.index("```python\n", start) + len("```python\n"):text.index("```\n", text.index("```python\n", start) + 9)]
+    assert "sim.set_goal(" in code and "sim.step()" in code and "finish()" in code
+    script = tmp_path / "example.py"
+    script.write_text(code + "\nprint('goal', sim.goal_xy is not None, 'steps', sim.summary.steps)\n")
+    env = dict(os.environ, COSIM_CACHE=str(tmp_path / "cache"), PYTHONPATH=str(repo))
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=900, cwd=tmp_path,
+                       env=env)
+    assert r.returncode == 0, r.stderr[-3000:]
+    lines = r.stdout.strip().splitlines()
+    assert lines[-1] == "goal True steps 600" and lines[-2].startswith("sim 60.0 s in "), lines[-3:]
+    assert "camera_image: this simulation loaded no visual meshes" in r.stderr      # (as its comment says)
+
+
 def test_next_window_built_in_background_and_swapped_in(motorway_world):
     """Past a chunk border the window around the car's new chunk is built in a worker process
     (netconvert, layers, demand); when it is ready the world takes it in and SUMO moves to its
