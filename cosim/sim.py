@@ -307,6 +307,13 @@ class Simulation:
             plan = self.traffic.plan_route(lane, pos, **self._plan_kw())
         except SimulationError as e:
             if "no road for cars" in str(e):      # the goal's
+                gx, gy = self._plan_kw()["goal_xy"]
+                (x0, y0), (x1, y1) = self.traffic.sumo.simulation.getNetBoundary()
+                if not (x0 <= gx <= x1 and y0 <= gy <= y1):
+                    lat, lon = self.cfg.goal
+                    raise InputError(f"goal ({lat:.5f}, {lon:.5f}) is {math.hypot(gx, gy) / 1000:.1f} km from the "
+                                     f"world's centre, outside SUMO's network (x {x0:.0f}..{x1:.0f}, y {y0:.0f}.."
+                                     f"{y1:.0f} m): pick a goal inside it, or build the world around the goal") from None
                 raise InputError(f"goal: {e}") from None
             raise
         self._apply_plan(plan)

@@ -165,6 +165,10 @@ def test_an_unreachable_goal_names_its_road(helsinki):
         start_sim(helsinki, goal=(60.1735, 24.9380), duration_s=5)
     assert str(e.value) == ("goal unreachable: its nearest road for cars, Töölönlahdenkatu (lane 8034129#0_1), "
                             "29 m from it, cannot be reached by road from the car's position")
+    # beyond SUMO's network (it said "no road for cars near (30969, -58921) m", in metres)
+    with pytest.raises(InputError, match=r"^goal \(60\.40000, 25\.10000\) is 2\d\.\d km from the world's centre, "
+                                         r"outside SUMO's network \(x -?\d+\.\.\d+, y -?\d+\.\.\d+ m\)"):
+        start_sim(helsinki, goal=(60.4, 25.1), duration_s=5)
 
 
 def test_a_start_outside_the_built_world_is_a_clear_error(helsinki):
