@@ -34,6 +34,9 @@ from netgen.errors import CosimError, InputError, SimulationError
 from .config import SimConfig
 
 log = logging.getLogger("cosim.sim")
+#: the driver's-view camera: metres ahead of the car's centre and above the ground (just ahead of
+#: the windscreen of models/car, whose cabin ends 1.05 m ahead of the centre, above its 0.95 m bonnet)
+DRIVER_CAMERA = (1.1, 1.4)
 
 
 @dataclass
@@ -831,8 +834,12 @@ class Simulation:
         st = self.vehicle.state()
         c, s = math.cos(st.yaw), math.sin(st.yaw)
         if view == "driver":
-            eye = [st.x + 0.3 * c, st.y + 0.3 * s, st.z + 1.3]
-            target = [st.x + 30 * c, st.y + 30 * s, st.z + 1.0]
+            # from just ahead of the windscreen, above the bonnet, along the car's pitch (a camera
+            # inside the cabin, as before, saw the inside of its roof and windscreen)
+            fx, fy, fz = c * math.cos(st.pitch), s * math.cos(st.pitch), -math.sin(st.pitch)
+            eye = [st.x + DRIVER_CAMERA[0] * fx, st.y + DRIVER_CAMERA[0] * fy,
+                   st.z + DRIVER_CAMERA[1] + DRIVER_CAMERA[0] * fz]
+            target = [eye[0] + 30 * fx, eye[1] + 30 * fy, eye[2] + 30 * fz - 0.2]
         else:
             eye = [st.x - 12 * c, st.y - 12 * s, st.z + 5.0]
             target = [st.x + 8 * c, st.y + 8 * s, st.z + 1.0]

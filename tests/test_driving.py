@@ -576,6 +576,25 @@ def test_env_rgb_array_render_draws_the_world_and_a_headless_camera_says_it_cann
     assert len(said) == 1 and "render=True" in said[0].getMessage()
 
 
+def test_the_drivers_view_looks_out_over_the_bonnet(helsinki):
+    """``camera_image(view="driver")`` sees the road ahead over the bonnet: the car's paint only
+    in the lowest part of the picture. The camera sat inside the cabin and saw the inside of
+    the roof's edge across the picture and the windscreen's box over half of it."""
+    sim = start_sim(helsinki, start=HEL_MID, speed_mps=8.0, duration_s=20, render=True)
+    try:
+        for _ in range(20):
+            sim.step()
+        img = np.asarray(sim.camera_image(480, 270, view="driver")).astype(int)
+    finally:
+        sim.teardown()
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    paint = (b > 140) & (r < 70) & (g < 120)          # models/car's paint, rgba 0.10 0.30 0.70
+    rows = np.nonzero(paint.any(axis=1))[0]
+    assert len(rows) and rows.min() > 0.7 * img.shape[0] and paint.mean() < 0.25, (rows.min(), paint.mean())
+    assert not (b > r + 40)[: img.shape[0] // 2].any()     # nothing of the car (its roof's edge) up there
+    assert ((img.min(axis=2) > 235)[: img.shape[0] // 3]).mean() > 0.05      # some sky in the upper third
+
+
 def _arc_path(radius: float, angle_deg: float):
     """A LanePath (geometry only) along x: 60 m straight, a left arc, 60 m straight on."""
     from cosim.driving import LanePath
