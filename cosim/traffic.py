@@ -62,6 +62,7 @@ log = logging.getLogger(__name__)
 
 EGO_ID = "ego"
 TMP_PREFIX = "cosim-sumo-"      # SUMO's folder for its logs: <tmp>/cosim-sumo-<pid>-*
+_STALE_SWEPT = False            # remove_stale_tmp has run in this process
 PROBE_ID = "cosim_probe"
 VEHICLE_RECOUNT_STEPS = 10   # SUMO's vehicles are counted every this many steps (in between: departed - arrived)
 # m: front-bumper anchors vs centre distances (half a bus, 6 m, + half the ego, 2.25 m, + 1 m,
@@ -447,7 +448,7 @@ class SumoTraffic(Component):
 
     def setup(self) -> None:
         """Start SUMO on the net and route files. Raises SimulationError (one line)."""
-        global _LIBSUMO_OWNER
+        global _LIBSUMO_OWNER, _STALE_SWEPT
         if self._sim is not None:
             raise SimulationError("SumoTraffic.setup(): this simulation is already running")
         self._preflight()
@@ -463,6 +464,9 @@ class SumoTraffic(Component):
         for k in ("SUMO_HOME", "PROJ_DATA", "PROJ_LIB"):
             if k in env:
                 os.environ.setdefault(k, env[k])
+        if not _STALE_SWEPT:            # (once a process: the folders of runs killed outright)
+            _STALE_SWEPT = True
+            self.remove_stale_tmp()
         self._tmpdir = tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{os.getpid()}-")   # (see remove_tmp_of)
         err_log = os.path.join(self._tmpdir, "sumo-errors.log")
         binary = os.path.join(home, "bin", "sumo-gui" if self.gui else "sumo")
@@ -588,6 +592,25 @@ class SumoTraffic(Component):
         was killed, or crashed, never removed its own."""
         for d in glob.glob(os.path.join(tempfile.gettempdir(), f"{TMP_PREFIX}{int(pid)}-*")):
             shutil.rmtree(d, ignore_errors=True)
+
+    @staticmethod
+    def remove_stale_tmp() -> int:
+        """Remove the folders of processes that ran a SumoTraffic and are gone (a run killed
+        outright, SIGKILL or SIGTERM, leaves its folder); returns how many. A folder whose
+        process id is alive, whatever runs under it now, is left alone."""
+        n = 0
+        for d in glob.glob(os.path.join(tempfile.gettempdir(), f"{TMP_PREFIX}*-*")):
+            try:
+                pid = int(os.path.basename(d)[len(TMP_PREFIX):].split("-", 1)[0])
+                os.kill(pid, 0)
+            except ValueError:
+                continue
+            except ProcessLookupError:
+                shutil.rmtree(d, ignore_errors=True)
+                n += 1
+            except OSError:         # (alive, another user's)
+                continue
+        return n
 
     def _cleanup_tmp(self):
         if self._tmpdir:

@@ -1314,3 +1314,32 @@ def test_the_vehicle_count_between_recounts_is_sumos(dense, traffic):
         assert t.stats.vehicles == s.vehicle.getIDCount(), f"step {k + 1}"
         seen.add(t.stats.vehicles)
     assert len(seen) > 3        # (the count changed on the way)
+
+
+def test_sumo_folders_of_processes_that_are_gone_are_swept():
+    """A run killed outright (SIGKILL, SIGTERM) leaves its SUMO folder in the temporary
+    directory; ``SumoTraffic.remove_stale_tmp`` (the first SUMO a process starts runs it)
+    removes those whose process is gone and leaves a live process's alone."""
+    import os
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    tmp = Path(tempfile.gettempdir())
+    dead = tmp / f"cosim-sumo-{gone.pid}-killed"
+    live = tmp / f"cosim-sumo-{os.getpid()}-running"
+    other = tmp / "cosim-sumo-notapid-x"
+    for d in (dead, live, other):
+        d.mkdir(exist_ok=True)
+        (d / "sumo-errors.log").write_text("Error: something\n")
+    try:
+        assert SumoTraffic.remove_stale_tmp() >= 1
+        assert not dead.exists() and live.exists() and other.exists()
+    finally:
+        import shutil
+
+        for d in (dead, live, other):
+            shutil.rmtree(d, ignore_errors=True)
