@@ -313,7 +313,7 @@ def make_parser() -> argparse.ArgumentParser:
     g.add_argument("--sensor-range", type=float, metavar="M", help="lidar/camera range the world must cover (default 100)")
     g.add_argument("--telemetry", metavar="FILE.jsonl", help="write one JSON row per SUMO step")
     g.add_argument("--gui", action="store_true", help="PyBullet's 3D window with a chase camera (needs a display)")
-    g.add_argument("--sumo-gui", action="store_true", help="run SUMO in sumo-gui (TraCI backend)")
+    g.add_argument("--sumo-gui", action="store_true", help="run SUMO in sumo-gui (TraCI backend; needs a display)")
     g.add_argument("--backend", choices=["libsumo", "traci"], help="SUMO API (default libsumo)")
     g.add_argument("--parallel-sumo", action=argparse.BooleanOptionalAction, default=None,
                    help="run libsumo in a worker process that steps while the physics runs "
