@@ -14,8 +14,17 @@ import time
 from netgen.errors import CosimError
 
 
+#: where each stage of a world build starts and ends on the progress bar (its share of a typical
+#: build's time; "roads" holds the wait for netconvert and the road meshing)
+BUILD_STAGES = {"osm": (0.0, 0.08), "netconvert": (0.08, 0.08), "elevation": (0.08, 0.1),
+                "terrain": (0.1, 0.12), "features": (0.12, 0.2), "buildings": (0.2, 0.23),
+                "scenery": (0.23, 0.26), "roads": (0.26, 0.9), "write": (0.9, 1.0), "done": (1.0, 1.0)}
+
+
 class Progress:
-    """Progress on stderr: a bar redrawn in place on a terminal, one line per stage otherwise."""
+    """Progress on stderr: a bar redrawn in place on a terminal, one line per stage otherwise.
+    A world build's stages fill the bar in turn (:data:`BUILD_STAGES`); other stages show their
+    own fraction."""
 
     def __init__(self, stream=sys.stderr, quiet=False, verbose=False):
         self.stream = stream
@@ -31,6 +40,9 @@ class Progress:
             return
         el = time.perf_counter() - self.t0
         if self.tty:
+            if stage in BUILD_STAGES:
+                lo, hi = BUILD_STAGES[stage]
+                frac = lo + (hi - lo) * max(0.0, min(1.0, frac))
             n = int(20 * max(0.0, min(1.0, frac)))
             self.stream.write(f"\r[{'#' * n}{'.' * (20 - n)}] {el:6.1f}s {stage:<10} {msg[:50]:<50}")
             if stage == "done":
@@ -128,8 +140,9 @@ def print_build_report(w: dict, stream=sys.stdout):
           f"{c['stop_signs']} stop / {c['give_way_signs']} give-way signs, {c['benches']} benches", file=stream)
     tr = w["terrain"]
     ev = w["sources"]["elevation"]
+    source = " ".join(x for x in (str(ev.get("kind")), ", ".join(ev.get("files", []))) if x)
     print(f"terrain    {tr['spacing_m']} m grid, z {tr['z_range_m'][0]}..{tr['z_range_m'][1]} m from "
-          f"{ev.get('kind')} {', '.join(ev.get('files', []))}; voids filled: {ev.get('voids_filled', 0)}", file=stream)
+          f"{source}; voids filled: {ev.get('voids_filled', 0)}", file=stream)
     nw = w.get("netconvert_warnings", {})
     if nw.get("total"):
         top = "; ".join(f"{x['count']}x {x['message'][:60]}" for x in nw.get("top", [])[:3])

@@ -1825,3 +1825,31 @@ def test_cli_output_into_a_closed_pipe_is_no_traceback(tmp_path):
     p.wait(timeout=60)
     assert "Traceback" not in err and "Error" not in err, err
     assert p.returncode == 141
+
+
+def test_the_build_progress_bar_fills_through_the_stages_and_the_report_reads_well(tmp_path):
+    """On a terminal the bar fills as a real build goes through its stages (every stage drew
+    an empty bar until the last one, which filled it at once); the report's terrain line of
+    a flat world reads "from flat;" (it read "from flat ;")."""
+    import io
+    import re
+
+    from cosim.cli import Progress, print_build_report
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    term = Terminal()
+    w = build_world(WorldConfig(preset="kouvola", chunks=0, out=str(tmp_path / "w"), cache_dir=str(tmp_path / "c")),
+                    progress=Progress(stream=term))
+    bars = [(m.group(2), m.group(1).count("#")) for m in re.finditer(r"\[([#.]{20})\]\s+[\d.]+s (\w+)", term.getvalue())]
+    stages = [s for s, _ in bars]
+    fill = [n for _, n in bars]
+    assert stages[0] == "osm" and stages[-1] == "done" and {"roads", "write", "features"} <= set(stages), stages
+    assert fill == sorted(fill) and fill[0] == 0 and fill[-1] == 20, bars
+    assert len(set(fill)) >= 5                       # it moves on the way, not only at the end
+    report = io.StringIO()
+    print_build_report(w, stream=report)
+    line = next(ln for ln in report.getvalue().splitlines() if ln.startswith("terrain"))
+    assert re.search(r"m from flat; voids filled: 0$", line), line
