@@ -38,6 +38,7 @@ from netgen.frame import check_latlon
 
 DENSITIES = ("none", "light", "normal", "dense")
 MAX_SPEED_MPS = 40.0
+MAX_SEED = 2**31 - 1
 
 
 @dataclass
@@ -85,6 +86,9 @@ class SimConfig:
                 raise InputError(f"traffic must be one of {', '.join(DENSITIES)} or vehicles per km2, got {self.traffic!r}")
         if not isinstance(self.traffic, str) and not 0 <= float(self.traffic) <= 2000:
             raise InputError(f"traffic density {self.traffic} vehicles/km2 is out of range (0..2000)")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed <= MAX_SEED:
+            # (SUMO's tools take a 32-bit seed: a larger one failed deep in randomTrips)
+            raise InputError(f"seed must be a whole number from 0 to {MAX_SEED}, got {self.seed!r}")
         if not 0 <= float(self.speed_mps) <= MAX_SPEED_MPS:
             raise InputError(f"speed {self.speed_mps} m/s is out of range (0..{MAX_SPEED_MPS:.0f})")
         if not 0 < float(self.duration_s) <= 24 * 3600:

@@ -63,6 +63,7 @@ import math
 import numpy as np
 
 from .autopilot import Autopilot
+from .config import MAX_SEED
 
 try:  # Gymnasium is optional: follow its API, subclass it when present
     import gymnasium as _gym
@@ -141,7 +142,7 @@ class DrivingEnv(_Base):
             self.close()
             cfg = copy.deepcopy(self.base_config)
             if seed is not None:
-                cfg.seed = int(seed)
+                cfg.seed = int(seed) % (MAX_SEED + 1)     # (any int, as Gymnasium allows; SUMO's is 32-bit)
             if self.render_mode == "rgb_array":
                 cfg.render = True       # (a headless world has no visual meshes: render() drew none)
             self._seed = cfg.seed

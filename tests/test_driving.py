@@ -520,6 +520,8 @@ def test_env_step_api_and_callback_driver(helsinki):
         assert abs(obs["speed"][0]) < 0.1 and abs(obs["lateral_offset"][0]) < 0.3
         with pytest.raises(ValueError):
             env.step([1.0, 0.0])
+        env.reset(seed=2**40 + 5)                    # any int, as Gymnasium allows: SUMO's 32-bit seed 5
+        assert env.sim.cfg.seed == 5
     finally:
         env.close()
 

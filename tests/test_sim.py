@@ -243,6 +243,12 @@ def test_scenario_files_load_typed_and_their_mistakes_are_named(tmp_path):
         with pytest.raises(InputError) as e:
             SimConfig.from_toml(f)
         assert str(e.value).startswith("scenario bad.toml: ") and says in str(e.value), (text, str(e.value))
+    for seed in (-1, 2**31, 99999999999):       # (SUMO's tools take a 32-bit seed: 99999999999 failed
+        with pytest.raises(InputError, match=rf"^seed must be a whole number from 0 to 2147483647, got {seed}$"):
+            SimConfig(world=c.world, seed=seed).validate()     # in randomTrips, "FileNotFoundError")
+    f.write_text('[world]\npreset = "kouvola"\n[traffic]\nseed = 99999999999\n')
+    with pytest.raises(InputError, match="seed must be a whole number from 0 to 2147483647"):
+        SimConfig.from_toml(f)
     f.write_text('[world]\npreset = "kouvola"\n[run]\nduration_s = "five"\n')
     r = subprocess.run([sys.executable, "-m", "cosim", "run", str(f)], capture_output=True, text=True, timeout=120,
                        cwd=tmp_path)
