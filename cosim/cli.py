@@ -316,7 +316,7 @@ def make_parser() -> argparse.ArgumentParser:
     g.add_argument("--duration", type=float, metavar="S", help="simulated seconds (default 60)")
     g.add_argument("--speed", type=float, metavar="MPS", help="the ego's set speed in m/s (default 10)")
     g.add_argument("--traffic", metavar="DENSITY", help="none | light | normal | dense | vehicles per km2")
-    g.add_argument("--seed", type=int, help="random seed: the same seed (world and --parallel-sumo) repeats the run")
+    g.add_argument("--seed", type=int, help="random seed, 0..2147483647: the same seed (world and --parallel-sumo) repeats the run")
     g.add_argument("--swap-when-ready", action="store_true",
                    help="swap to the next window as soon as it is built, not at a fixed simulated time "
                         "after its build started (never waits for a build; the run is not repeatable)")
