@@ -598,18 +598,14 @@ class SumoTraffic(Component):
         """Remove the folders of processes that ran a SumoTraffic and are gone (a run killed
         outright, SIGKILL or SIGTERM, leaves its folder); returns how many. A folder whose
         process id is alive, whatever runs under it now, is left alone."""
+        from netgen._atomic import process_alive
+
         n = 0
         for d in glob.glob(os.path.join(tempfile.gettempdir(), f"{TMP_PREFIX}*-*")):
-            try:
-                pid = int(os.path.basename(d)[len(TMP_PREFIX):].split("-", 1)[0])
-                os.kill(pid, 0)
-            except ValueError:
-                continue
-            except ProcessLookupError:
+            pid = os.path.basename(d)[len(TMP_PREFIX):].split("-", 1)[0]
+            if pid.isdigit() and not process_alive(int(pid)):
                 shutil.rmtree(d, ignore_errors=True)
                 n += 1
-            except OSError:         # (alive, another user's)
-                continue
         return n
 
     def _cleanup_tmp(self):

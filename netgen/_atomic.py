@@ -86,6 +86,11 @@ def remove_stale_temps(folder: Path, name: str) -> None:
 def _running(pid: int) -> bool:
     if pid == os.getpid():
         return False            # (this process's own leftover: a build that failed here)
+    return process_alive(pid)
+
+
+def process_alive(pid: int) -> bool:
+    """Whether a process with this id exists (another user's counts)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:

@@ -233,7 +233,7 @@ class MainWindow(QMainWindow):
         gl.addWidget(self.ed_dest_lon, 1, 2)
         gl.addWidget(self.btn_goal, 2, 1, 1, 2)
         self.chk_gui = QCheckBox("PyBullet 3D window")
-        why = display_problem()
+        why = self._no_display = display_problem()     # (asked once: it connects to the X server)
         if why is None:
             self.chk_gui.setToolTip("open PyBullet's own 3D window beside the launcher")
         else:
@@ -661,7 +661,7 @@ class MainWindow(QMainWindow):
         self.cb_preset.setEnabled(editing and not coords)
         for w in (self.ed_lat, self.ed_lon, self.ed_osm, self.b_osm):
             w.setEnabled(editing and coords)
-        self.chk_gui.setEnabled(editing and has_display())
+        self.chk_gui.setEnabled(editing and self._no_display is None)
         for w in (self.ed_speed, self.ed_dest_lat, self.ed_dest_lon):
             w.setEnabled(editing or live)
         self.btn_goal.setEnabled(live and self._running)
