@@ -872,6 +872,8 @@ class Simulation:
         return self.finish()
 
     def finish(self) -> Summary:
+        if self.telemetry is not None:
+            self.telemetry.flush()      # a full disk is the run's error, not a teardown warning
         s = self.summary
         s.sim_time_s = round(self.t, 3)
         s.wall_time_s = round(time.perf_counter() - (self._wall0 or time.perf_counter()), 3)

@@ -155,6 +155,33 @@ def test_cli_run_headless_prints_summary(motorway_world, tmp_path):
     assert s["sim_time_s"] == pytest.approx(5.0) and s["steps"] == 50 and s["real_time_factor"] > 0
 
 
+def _file_size_limit(limit):
+    def pre():
+        import resource
+        import signal
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)       # a write past the limit fails with EFBIG
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return pre
+
+
+def test_telemetry_that_cannot_be_written_stops_the_run_at_a_whole_row(motorway_world, tmp_path):
+    """A write that fails (here a file size limit, as a full disk would) is one line and exit
+    code 2, and the file is cut back to its last whole row: every line of it is a row."""
+    tel = tmp_path / "t.jsonl"
+    r = subprocess.run([sys.executable, "-m", "cosim", "run", "--world", str(motorway_world), "--duration", "40",
+                        "--traffic", "none", "-q", "--telemetry", str(tel)], capture_output=True, text=True,
+                       timeout=600, cwd=tmp_path, preexec_fn=_file_size_limit(100_000))
+    assert r.returncode == 2, r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"error: cannot write telemetry {tel}: File too large (it keeps its first "), last
+    kept = int(last.split("its first ")[1].split()[0])
+    data = tel.read_bytes()
+    assert 0 < len(data) <= 100_000 and data.endswith(b"\n")
+    rows = [json.loads(line) for line in data.decode().splitlines()]
+    assert len(rows) == kept and 0 < kept < 400
+    assert [r_["t"] for r_ in rows] == pytest.approx([0.1 * (i + 1) for i in range(kept)])
+
+
 def test_start_far_from_roads_is_a_clear_error(motorway_world, tmp_path):
     r = subprocess.run([sys.executable, "-m", "cosim", "run", "--world", str(motorway_world), "--duration", "1",
                         "--traffic", "none", "--start", "60.5430,26.9602"], capture_output=True, text=True,
