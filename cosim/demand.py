@@ -69,6 +69,7 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from netgen._atomic import disk_error, disk_full
 from netgen.errors import BuildError, InputError
 
 log = logging.getLogger(__name__)
@@ -230,9 +231,18 @@ def generate_demand(net_file, out_dir, density="normal", seed: int = 0,
                     timeout: float = 900.0) -> Demand:
     """Make (or find in the cache) vehicle and pedestrian route files for ``net_file``.
 
-    Returns a :class:`Demand`; raises :class:`BuildError` (one line) when randomTrips fails or
-    no vehicle trip could be routed, :class:`InputError` for a bad density/duration.
+    Returns a :class:`Demand`; raises :class:`BuildError` (one line) when randomTrips fails,
+    no vehicle trip could be routed or the files cannot be written (a full disk), and
+    :class:`InputError` for a bad density/duration. The folder's ``demand.json`` is written
+    last: a folder without it is never used.
     """
+    try:
+        return _generate_demand(net_file, out_dir, density, seed, duration, prefill, timeout)
+    except OSError as e:
+        raise disk_error(Path(out_dir), e) from None
+
+
+def _generate_demand(net_file, out_dir, density, seed, duration, prefill, timeout) -> Demand:
     net_file = Path(net_file).absolute()     # randomTrips runs in its own working folder
     out_dir = Path(out_dir).absolute()
     if not net_file.is_file():
@@ -420,6 +430,9 @@ def _wait_random_trips(job, net_file: Path, timeout: float) -> tuple[Path, int]:
     finally:
         err.close()
     if proc.returncode != 0 or not routes.is_file():
+        folder = routes.parents[2]          # demand-<key>/<tmp>/<prefix>/<prefix>.rou.xml
+        if disk_full(folder):               # (its stderr file may be empty for the same reason)
+            raise BuildError(f"disk full while writing the traffic demand in {folder}")
         msg = _last_error_line(stderr) or f"exit code {proc.returncode}"
         raise BuildError(f"randomTrips ({what}) failed on {net_file.name}: {msg}")
     return routes, _count_tag(trips, "person" if what == "pedestrians" else "trip")

@@ -18,8 +18,21 @@ from pathlib import Path
 from .errors import BuildError
 
 
-def _disk_error(path, e: OSError) -> BuildError:
-    if e.errno == errno.ENOSPC:
+#: below this many free bytes a failed write or a failed tool is put down to a full disk
+DISK_FULL_BYTES = 1 << 20
+
+
+def disk_full(path) -> bool:
+    """True if the file system holding ``path`` has (nearly) no space left."""
+    try:
+        return shutil.disk_usage(path).free < DISK_FULL_BYTES
+    except OSError:
+        return False
+
+
+def disk_error(path, e: OSError) -> BuildError:
+    """The one-line error for an OSError met while writing ``path``."""
+    if e.errno in (errno.ENOSPC, errno.EDQUOT):
         return BuildError(f"disk full while writing {path}")
     if e.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
         return BuildError(f"cannot write {path}: permission denied")
@@ -35,7 +48,7 @@ def atomic_path(target: str | os.PathLike):
         fd, tmp = tempfile.mkstemp(prefix=target.name + ".tmp-", dir=target.parent)
         os.close(fd)
     except OSError as e:
-        raise _disk_error(target, e) from None
+        raise disk_error(target, e) from None
     try:
         yield Path(tmp)
         with open(tmp, "rb+") as f:
@@ -43,7 +56,7 @@ def atomic_path(target: str | os.PathLike):
         os.replace(tmp, target)
     except OSError as e:
         _unlink(tmp)
-        raise _disk_error(target, e) from None
+        raise disk_error(target, e) from None
     except BaseException:
         _unlink(tmp)
         raise
@@ -108,4 +121,4 @@ def check_writable(folder: Path) -> None:
         os.close(fd)
         os.unlink(tmp)
     except OSError as e:
-        raise _disk_error(folder, e) from None
+        raise disk_error(folder, e) from None

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._atomic import _disk_error
+from ._atomic import disk_error
 
 
 # layer colours (RGBA), shared by the PyBullet view and the Gazebo export so both look alike
@@ -258,7 +258,7 @@ def write_file(path: Path, data: bytes) -> None:
             os.unlink(tmp)
         except OSError:
             pass
-        raise _disk_error(path, e) from None
+        raise disk_error(path, e) from None
 
 
 def read_obj_groups(path: Path) -> dict:

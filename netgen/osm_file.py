@@ -14,8 +14,8 @@ from pathlib import Path
 
 import osmium
 
-from ._atomic import atomic_path
-from .errors import DataError
+from ._atomic import atomic_path, disk_full
+from .errors import BuildError, DataError
 
 SUFFIXES = (".osm", ".osm.pbf", ".pbf", ".osm.gz", ".osm.bz2", ".xml")
 
@@ -41,6 +41,17 @@ def _corrupt(path: Path, e: Exception) -> DataError:
     block: RuntimeError subclasses)."""
     msg = " ".join(str(e).split())[:200]
     return DataError(f"OSM file {path.name} is corrupt or truncated ({msg})")
+
+
+def _conversion_error(path: Path, out: Path, e: Exception) -> Exception:
+    """The one-line error for a libosmium failure while converting ``path`` into ``out``:
+    the disk's when the write failed (libosmium says "Write failed"), else the file's."""
+    text = " ".join(str(e).split())
+    if "No space left" in text or disk_full(out.parent):
+        return BuildError(f"disk full while writing {out}")
+    if "Write failed" in text:
+        return BuildError(f"cannot write {out}: {text[:200]}")
+    return _corrupt(path, e)
 
 
 def _check_readable(path: Path) -> None:
@@ -235,15 +246,16 @@ def to_osm_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
     if info is not None and keep_edges_file(out).exists():
         return out, info
     with atomic_path(out) as tmp:
-        w = osmium.SimpleWriter(osmium.io.File(str(tmp), "osm"), overwrite=True)
         try:
-            r = osmium.MergeInputReader()
-            r.add_file(str(path))
-            r.apply(w)
+            w = osmium.SimpleWriter(osmium.io.File(str(tmp), "osm"), overwrite=True)
+            try:
+                r = osmium.MergeInputReader()
+                r.add_file(str(path))
+                r.apply(w)
+            finally:
+                w.close()           # (writes what is buffered: a full disk may show here)
         except Exception as e:    # libosmium: a parse error, a truncated block (RuntimeError subclasses)
-            raise _corrupt(path, e) from None
-        finally:
-            w.close()
+            raise _conversion_error(path, out, e) from None
         counts = count_xml(tmp)
         if counts["ways"] == 0:
             nodes = scan(path)["nodes"]      # only to word the error
@@ -299,8 +311,8 @@ def network_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
             counts = _write_network(path, tmp)
         except DataError:
             raise
-        except Exception as e:    # libosmium: a parse error, a truncated block
-            raise _corrupt(path, e) from None
+        except Exception as e:    # libosmium: a parse error, a truncated block, a failed write
+            raise _conversion_error(path, out, e) from None
         if counts["network_ways"] == 0:
             scan(path)          # no map data at all: its error; else netconvert says "no roads"
     counts["level_ways"] = _write_keep(counts.pop("level"), keep_edges_file(out))

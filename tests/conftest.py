@@ -33,3 +33,46 @@ def shared():
 def _isolated_cache(tmp_path_factory, monkeypatch):
     """Each test session gets its own cache dir so tests never trust a user's cache."""
     monkeypatch.setenv("COSIM_CACHE", str(tmp_path_factory.getbasetemp() / "cosim-cache"))
+
+
+class SmallDisk:
+    """A real, small file system (tmpfs) that can be filled, for the full-disk checks."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def fill(self, leave: int = 0) -> None:
+        """Take all its free space but ``leave`` bytes (one file, allocated at once)."""
+        import shutil
+        free = shutil.disk_usage(self.path).free
+        fd = os.open(self.path / f"filler-{free}", os.O_WRONLY | os.O_CREAT, 0o600)
+        try:
+            if free > leave:
+                os.posix_fallocate(fd, 0, free - leave)
+        finally:
+            os.close(fd)
+
+    def empty(self) -> None:
+        for f in self.path.glob("filler-*"):
+            f.unlink()
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """An 8 MB tmpfs mounted in the test's folder. Mounting needs root (CAP_SYS_ADMIN):
+    elsewhere the test skips and says so."""
+    import subprocess
+    mnt = tmp_path / "small-disk"
+    mnt.mkdir()
+    try:
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(mnt)],
+                           capture_output=True, text=True, timeout=30)
+    except OSError as e:
+        pytest.skip(f"cannot mount a small tmpfs for the full-disk check: {e}")
+    if r.returncode != 0:
+        pytest.skip("cannot mount a small tmpfs for the full-disk check (needs root): "
+                    + (r.stderr.strip().splitlines() or ["mount failed"])[-1])
+    try:
+        yield SmallDisk(mnt)
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], capture_output=True, timeout=30)

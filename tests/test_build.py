@@ -1378,6 +1378,26 @@ def test_unwritable_output_folder(tmp_path):
         ro.chmod(0o700)
 
 
+def test_a_full_disk_is_a_clear_error_and_leaves_nothing_trusted(tmp_path, small_disk):
+    """A world bigger than the disk (Kouvola's is about 20 MB, the disk 8 MB), then a cache
+    folder on a disk already full: one line each, exit code 2, no world and no temporary
+    folder left behind; with the space back, the same build succeeds."""
+    out = small_disk.path / "w"
+    r = _cli(["build", "--preset", "kouvola", "--out", str(out)], tmp_path, {"COSIM_CACHE": str(tmp_path / "c")})
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith("error: disk full while writing "), r.stderr
+    assert load_world_json(out) is None and sorted(p.name for p in small_disk.path.iterdir()) == []
+    small_disk.fill(leave=64 * 1024)
+    r = _cli(["build", "--preset", "kouvola", "--out", "w2", "--cache-dir", str(small_disk.path / "c")], tmp_path)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith(f"error: disk full while writing {small_disk.path / 'c'}")
+    assert load_world_json(tmp_path / "w2") is None
+    small_disk.empty()
+    r = _cli(["build", "--preset", "kouvola", "--out", "w2", "--cache-dir", str(small_disk.path / "c")], tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert load_world_json(tmp_path / "w2")["counts"]["road_edges"] > 100
+
+
 def test_read_only_filesystem_output(tmp_path):
     """Root ignores permissions, but /proc is read-only for everyone."""
     r = _cli(["build", "--preset", "kouvola", "--out", "/proc/cosim-world"], tmp_path,

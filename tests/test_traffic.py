@@ -10,7 +10,7 @@ import pytest
 from cosim.demand import DENSITY_PRESETS, generate_demand, parse_density, plan_demand
 from cosim.traffic import (EGO_ID, SumoTraffic, _boxes_overlap, center_to_front, front_to_center,
                            sumo_angle_to_yaw, yaw_to_sumo_angle)
-from netgen.errors import InputError, SimulationError
+from netgen.errors import BuildError, InputError, SimulationError
 
 from sumo_fixtures import REPO, build_helsinki
 
@@ -177,6 +177,22 @@ def test_demand_errors(tmp_path):
     with pytest.raises(Exception) as ei:
         generate_demand(bad, tmp_path, "light")
     assert "not a SUMO network" in str(ei.value)
+
+
+@pytest.mark.parametrize("leave", [0, 700_000])
+def test_demand_on_a_full_disk_is_a_clear_error_and_never_used(helsinki_net, small_disk, leave):
+    """With no room (randomTrips cannot even write its error log) or too little (the routes
+    do not fit): one line naming the disk, and no demand.json, so the folder is never taken
+    from the cache; with the space back the same call makes the demand."""
+    small_disk.fill(leave=leave)
+    with pytest.raises(BuildError) as ei:
+        generate_demand(helsinki_net, small_disk.path / "traffic", "dense", seed=3, duration=300)
+    msg = str(ei.value)
+    assert msg.startswith("disk full while writing ") and str(small_disk.path) in msg and "\n" not in msg, msg
+    assert not list(small_disk.path.glob("traffic/*/demand.json"))
+    small_disk.empty()
+    d = generate_demand(helsinki_net, small_disk.path / "traffic", "dense", seed=3, duration=300)
+    assert not d.cached and d.n_vehicles > 100 and d.vehicles_file.is_file()
 
 
 def test_density_levels_give_increasing_counts(helsinki_net, demand_dir, traffic):
