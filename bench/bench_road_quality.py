@@ -13,6 +13,11 @@ For each world folder given (built by ``cosim build``), from its tile meshes and
   a lane, two junctions that overlap);
 * sidewalk over a lane: 5 m cells where a sidewalk's face lies within 1 m in plan of a vehicle
   lane's face and 0.3-4 m above it (a slab the car's body drives into);
+* grade along the lanes: for each lane a passenger car may use (tunnels left out), the road's
+  surface followed along its centreline every 0.5 m with PyBullet's rays (each from 1.5 m above
+  the last hit: a deck or a roof above is not taken), and the steepest rise over 2 m; the lanes
+  whose steepest 2 m are over 20 / 30 / 40 / 60 %, and the steepest ones (a step where a lane
+  meets a junction's plane shows here; Monaco's Rond-Point du Portier stalled the car);
 * terrain above the road: the area of asphalt (lanes, junctions; sampled at 8 random points
   per m2, on the physics heightfield's triangles) under the terrain by more than 0 / 5 / 15 /
   30 / 100 cm (the terrain is levelled 8 cm under the road; above it, the car drives on the
@@ -135,6 +140,59 @@ def measure(path: str) -> dict:
     return out
 
 
+GRADE_STEP_M = 0.5
+GRADE_SPAN_M = 2.0
+
+
+def lane_grades(path: str) -> dict:
+    """Lane id -> (the steepest rise over GRADE_SPAN_M along its centreline, x, y there)."""
+    import json
+
+    import pybullet as p
+    import sumolib
+
+    from cosim.physics import PhysicsWorld
+
+    world = World(path)
+    meta = json.loads((Path(path) / "world.json").read_text())
+    x0, y0, x1, y1 = meta["extent_m"]
+    pw = PhysicsWorld(world, visuals=False).setup()
+    try:
+        pw.update((x0 + x1) / 2, (y0 + y1) / 2, keep_radius=float(np.hypot(x1 - x0, y1 - y0)), budget_ms=1e9)
+        cid = pw.client
+        net = sumolib.net.readNet(str(Path(path) / meta["net_file"]), withInternal=True)
+        tunnels = set(meta.get("tunnels", []))
+        k = int(round(GRADE_SPAN_M / GRADE_STEP_M))
+        out = {}
+        for e in net.getEdges(withInternal=True):
+            if e.getID() in tunnels:
+                continue
+            for ln in e.getLanes():
+                if not ln.allows("passenger"):
+                    continue
+                shp = np.array(ln.getShape())[:, :2]
+                s = np.r_[0.0, np.cumsum(np.hypot(*np.diff(shp, axis=0).T))]
+                if s[-1] < GRADE_SPAN_M:
+                    continue
+                ss = np.arange(0.0, s[-1], GRADE_STEP_M)
+                x, y = np.interp(ss, s, shp[:, 0]), np.interp(ss, s, shp[:, 1])
+                zc = float(np.nan_to_num(world.ground_z(x[:1], y[:1])[0]))
+                h = p.rayTest((x[0], y[0], zc + 3.0), (x[0], y[0], zc - 10.0), physicsClientId=cid)[0]
+                zc = h[3][2] if h[0] >= 0 else zc
+                z = np.full(len(x), np.nan)
+                for i, (a, b) in enumerate(zip(x, y)):
+                    h = p.rayTest((a, b, zc + 1.5), (a, b, zc - 3.0), physicsClientId=cid)[0]
+                    if h[0] >= 0:
+                        zc = z[i] = h[3][2]
+                g = np.abs(z[k:] - z[:-k]) / GRADE_SPAN_M
+                if len(g) and np.isfinite(g).any():
+                    i = int(np.nanargmax(g))
+                    out[ln.getID()] = (float(g[i]), float(x[i + k // 2]), float(y[i + k // 2]))
+        return out
+    finally:
+        pw.teardown()
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("worlds", nargs="+")
@@ -157,16 +215,23 @@ def main(argv=None):
             print(f"   5 m cells with a deck over a road (surfaces > {CLEARANCE_M:g} m apart): {r['deck_cells']}")
         if "sidewalk_over_lane_cells" in r:
             print(f"   5 m cells with a sidewalk 0.3-4 m above a vehicle lane: {r['sidewalk_over_lane_cells']}")
+        grades = lane_grades(w)
+        v = np.array([g[0] for g in grades.values()])
+        r["lanes_steeper"] = {t: int((v > t).sum()) for t in (0.2, 0.3, 0.4, 0.6)}
+        print(f"   grade along the lanes over {GRADE_SPAN_M:g} m, of {len(v)} lanes: " +
+              ", ".join(f"> {t * 100:.0f} %: {n}" for t, n in r["lanes_steeper"].items()))
+        worst = sorted(grades.items(), key=lambda kv: -kv[1][0])[:5]
+        print("   steepest: " + "; ".join(f"{lid} {g * 100:.0f} % at ({x:.0f}, {y:.0f})" for lid, (g, x, y) in worst))
         if "terrain_above" in r:
             print("   asphalt under the terrain by more than: " +
                   ", ".join(f"{th} m: {v:.1f} m2" for th, v in r["terrain_above"].items()))
     if len(rows) > 1:
         print("\nside by side: world | steep > 70 % (m2) | step cells > 0.6 m | sidewalk-over-lane cells | "
-              "asphalt under the terrain by > 0.05 m (m2)")
+              "asphalt under the terrain by > 0.05 m (m2) | lanes with 2 m over 40 %")
         for w, r in rows:
             s70 = sum(v[2] for v in r["steep"].values())
             print(f"  {w} | {s70:.0f} | {r.get('step_cells', {}).get(0.6)} | {r.get('sidewalk_over_lane_cells')} | "
-                  f"{r.get('terrain_above', {}).get(0.05, float('nan')):.1f}")
+                  f"{r.get('terrain_above', {}).get(0.05, float('nan')):.1f} | {r['lanes_steeper'][0.4]}")
 
 
 if __name__ == "__main__":
