@@ -62,6 +62,39 @@ def atomic_path(target: str | os.PathLike):
         raise
 
 
+@contextmanager
+def folder_lock(target: str | os.PathLike, on_wait=None):
+    """Hold an exclusive lock on the folder ``target`` while the block runs: one process at a
+    time builds it. The lock is a file ``.<name>.lock`` beside the folder, locked with
+    ``flock``; the kernel drops the lock when the process ends, even on SIGKILL, so a killed
+    build leaves no stale lock. Another process that wants the same folder waits for the
+    lock. ``on_wait()`` is called once, before it waits. (Two runs of one preset started
+    together both built it, and the second build's folder replaced the first's while the
+    first was writing its traffic demand there: "randomTrips failed ...
+    FileNotFoundError".) Without ``fcntl`` (Windows) there is no lock."""
+    try:
+        import fcntl
+    except ImportError:         # pragma: no cover
+        yield
+        return
+    target = Path(target)
+    path = target.parent / f".{target.name}.lock"
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as e:
+        raise disk_error(path, e) from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if on_wait is not None:
+                on_wait()
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)            # (and with it the lock)
+
+
 def write_bytes(target, data: bytes) -> None:
     with atomic_path(target) as tmp:
         Path(tmp).write_bytes(data)

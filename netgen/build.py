@@ -60,7 +60,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__ as NETGEN_VERSION
-from ._atomic import atomic_path, check_writable, remove_stale_temps, write_text
+from ._atomic import atomic_path, check_writable, folder_lock, remove_stale_temps, write_text
 from .config import QUALITY, WorldConfig
 from .errors import BuildError, DataError, InputError
 from .frame import WorldFrame
@@ -231,51 +231,53 @@ def build_world(cfg: WorldConfig, progress=_noop, force: bool = False, heights=N
     check_writable(out.parent)
     check_writable(cache)
 
-    progress("osm", 0.0, "reading OSM data")
-    with T.stage("osm"):
-        osm_xml, osm_info = _osm_for(cfg, source, bbox, cache)
-    tmp = out.parent / f"{out.name}.tmp-{os.getpid()}"
-    # netconvert, cached by its inputs (not the elevation). With no world on disk to reuse,
-    # it starts now, before the elevation source is opened (a cold start imports a lot)
-    nc_key = cfg.fingerprint({"osm": osm_info["sha256"], "proj": frame.proj_string,
-                              "bbox": [round(b, 6) for b in bbox], "opts": sumo_net.NETCONVERT_VERSION_TAG,
-                              "only": "net"})
-    nc = _Netconvert(sumo_net, osm_xml, tmp / NET_FILE, frame.proj_string, bbox,
-                     cache / "net" / f"{nc_key}.net.xml", cache / "net" / f"{nc_key}.warnings.json")
-    try:
-        if force or load_world_json(out) is None:
-            _start(nc, tmp, out, progress)
-        progress("elevation", 0.0, "opening elevation")
-        with T.stage("elevation_open"):
-            elevation = open_elevation_source(cfg, preset, bbox)
-        elev_info = elevation.info()
-        if cfg.dem:
-            elev_info = {**elev_info, "hashes": _dem_files_key(cfg)}
-        key = _build_key(cfg, osm_info["sha256"], elev_info, centre)
-        if not force and not nc.started:
-            old = load_world_json(out)
-            if old is not None and old.get("build_key") == key:
-                old["reused"] = True
-                old["out"] = str(out)
-                old["timings_s"] = {"total": round(time.perf_counter() - t_start, 3), "reused": True}
-                progress("done", 1.0, "world is up to date")
-                return old
-        if not nc.started:
-            _start(nc, tmp, out, progress)
-        world = _build_into(tmp, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, source,
-                            elevation, elev_info, key, name, nc, T, progress, read_planes(heights))
-        world["timings_s"]["total"] = round(time.perf_counter() - t_start, 3)
-        write_text(tmp / "world.json", json.dumps(world, indent=1))
-        _swap_into_place(tmp, out)
-        if heights is not None:
-            merge_planes(heights, read_planes(out / PLANES_FILE))
-    except BaseException:
-        nc.kill()
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    world["out"] = str(out)
-    progress("done", 1.0, f"world written to {out}")
-    return world
+    # one build of a folder at a time: a second process waits, then finds the first's world
+    with folder_lock(out, lambda: progress("osm", 0.0, f"waiting for another build of {out.name}")):
+        progress("osm", 0.0, "reading OSM data")
+        with T.stage("osm"):
+            osm_xml, osm_info = _osm_for(cfg, source, bbox, cache)
+        tmp = out.parent / f"{out.name}.tmp-{os.getpid()}"
+        # netconvert, cached by its inputs (not the elevation). With no world on disk to reuse,
+        # it starts now, before the elevation source is opened (a cold start imports a lot)
+        nc_key = cfg.fingerprint({"osm": osm_info["sha256"], "proj": frame.proj_string,
+                                  "bbox": [round(b, 6) for b in bbox], "opts": sumo_net.NETCONVERT_VERSION_TAG,
+                                  "only": "net"})
+        nc = _Netconvert(sumo_net, osm_xml, tmp / NET_FILE, frame.proj_string, bbox,
+                         cache / "net" / f"{nc_key}.net.xml", cache / "net" / f"{nc_key}.warnings.json")
+        try:
+            if force or load_world_json(out) is None:
+                _start(nc, tmp, out, progress)
+            progress("elevation", 0.0, "opening elevation")
+            with T.stage("elevation_open"):
+                elevation = open_elevation_source(cfg, preset, bbox)
+            elev_info = elevation.info()
+            if cfg.dem:
+                elev_info = {**elev_info, "hashes": _dem_files_key(cfg)}
+            key = _build_key(cfg, osm_info["sha256"], elev_info, centre)
+            if not force and not nc.started:
+                old = load_world_json(out)
+                if old is not None and old.get("build_key") == key:
+                    old["reused"] = True
+                    old["out"] = str(out)
+                    old["timings_s"] = {"total": round(time.perf_counter() - t_start, 3), "reused": True}
+                    progress("done", 1.0, "world is up to date")
+                    return old
+            if not nc.started:
+                _start(nc, tmp, out, progress)
+            world = _build_into(tmp, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, source,
+                                elevation, elev_info, key, name, nc, T, progress, read_planes(heights))
+            world["timings_s"]["total"] = round(time.perf_counter() - t_start, 3)
+            write_text(tmp / "world.json", json.dumps(world, indent=1))
+            _swap_into_place(tmp, out)
+            if heights is not None:
+                merge_planes(heights, read_planes(out / PLANES_FILE))
+        except BaseException:
+            nc.kill()
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        world["out"] = str(out)
+        progress("done", 1.0, f"world written to {out}")
+        return world
 
 
 NET_FILE = "net/world.net.xml"

@@ -1405,6 +1405,38 @@ def test_read_only_filesystem_output(tmp_path):
     assert r.returncode == 2 and r.stderr.startswith("error: cannot write"), r.stderr
 
 
+def test_two_builds_of_one_folder_at_once_build_it_once(tmp_path):
+    """Two processes that build the same folder at once: one builds, the other waits for it
+    and takes its world (two runs of a preset started together both built it, and the
+    second's folder replaced the first's under its running demand generation). The test
+    holds the folder's lock as a third build would, until both wait for it."""
+    from netgen._atomic import folder_lock
+
+    env = dict(os.environ, COSIM_CACHE=str(tmp_path / "c"))
+    env.pop("COSIM_DEBUG", None)
+    out = tmp_path / "w"
+    logs = [tmp_path / f"err{i}.txt" for i in range(2)]
+    procs = []
+    with folder_lock(out):
+        for log in logs:
+            with open(log, "w") as err:
+                procs.append(subprocess.Popen(CLI + ["build", "--preset", "kouvola", "--out", str(out), "--json",
+                                                     "-v"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                                              stderr=err, text=True))
+        deadline = time.time() + 180
+        while time.time() < deadline and any(p.poll() is None for p in procs) and \
+                not all("waiting for another build of w" in log.read_text() for log in logs):
+            time.sleep(0.1)
+    worlds = []
+    for p, log in zip(procs, logs):
+        stdout, _ = p.communicate(timeout=600)
+        assert p.returncode == 0, log.read_text()
+        worlds.append(json.loads(stdout))
+    assert sorted(bool(w.get("reused")) for w in worlds) == [False, True], [w.get("reused") for w in worlds]
+    assert worlds[0]["build_key"] == worlds[1]["build_key"] == load_world_json(out)["build_key"]
+    assert not list(tmp_path.glob("w.tmp-*"))
+
+
 def test_killed_build_leaves_nothing_trusted(tmp_path):
     env = dict(os.environ, COSIM_CACHE=str(tmp_path / "c"))
     p = subprocess.Popen(CLI + ["build", "--preset", "helsinki", "--out", "w", "-q"], cwd=tmp_path, env=env,
