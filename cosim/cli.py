@@ -129,6 +129,11 @@ def print_build_report(w: dict, stream=sys.stdout):
     print(f"world      {w.get('out', '')}", file=stream)
     print(f"place      {w['name']}  centre {w['center']['lat']:.6f},{w['center']['lon']:.6f}  "
           f"{len(w['chunks'])} chunks of {w['chunk_size_m']:.0f} m", file=stream)
+    road_chunks = sum(1 for ch in w["chunks"]
+                      if any(str(f).endswith("/asphalt.obj") for f in ch.get("files", {}).get("tiles", [])))
+    if road_chunks < len(w["chunks"]):
+        print(f"coverage   roads in {road_chunks} of {len(w['chunks'])} chunks: the OSM data covers only part "
+              "of this world (nothing to drive on in the others)", file=stream)
     if w.get("reused"):
         print(f"status     up to date (reused in {t.get('total', 0):.2f} s)", file=stream)
     print(f"network    {c['road_edges']} road edges ({c['road_length_km']} km), {c['junctions']} junctions, "

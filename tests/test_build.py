@@ -1905,3 +1905,20 @@ def test_the_build_progress_bar_fills_through_the_stages_and_the_report_reads_we
     print_build_report(w, stream=report)
     line = next(ln for ln in report.getvalue().splitlines() if ln.startswith("terrain"))
     assert re.search(r"m from flat; voids filled: 0$", line), line
+    assert "coverage" not in report.getvalue()       # (one chunk, with roads)
+
+
+def test_the_report_says_when_the_osm_data_covers_only_part_of_the_world(tmp_path):
+    """Helsinki's extract is about 1 x 1.7 km: with two rings of chunks (5 x 5 km) most chunks
+    have no road, and the report says so instead of leaving the user to find the edge."""
+    import io
+
+    from cosim.cli import print_build_report
+
+    w = build_world(WorldConfig(preset="helsinki", chunks=2, out=str(tmp_path / "w"), cache_dir=str(tmp_path / "c")))
+    with_roads = [ch for ch in w["chunks"] if any(f.endswith("/asphalt.obj") for f in ch["files"]["tiles"])]
+    assert 0 < len(with_roads) < len(w["chunks"]) == 25
+    report = io.StringIO()
+    print_build_report(w, stream=report)
+    line = next(ln for ln in report.getvalue().splitlines() if ln.startswith("coverage"))
+    assert line.startswith(f"coverage   roads in {len(with_roads)} of 25 chunks: the OSM data covers only part")
