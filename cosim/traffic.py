@@ -310,6 +310,9 @@ class TrafficStats:
 
 EGO_INSERT_DECEL = 4.5     # m/s², a vehicle behind the ego as it goes into SUMO must stop at this (_clear_ego_footprint)
 SWAP_WARM_S = 1.0          # a new SUMO runs this long before actors are carried into it
+#: how many edges of the ego's route ahead are watched for vehicles SUMO inserts in its way
+#: (_drop_inserted_ahead)
+INSERT_AHEAD_EDGES = 8
 FOLLOWER_LOOK_M = 100.0     # how far behind a carried vehicle its follower is looked for at a swap
 #: s of the route graph worked out after each step where SUMO runs in the caller's process
 #: (warm_routes; SUMO's worker does it while it waits for a request)
@@ -754,6 +757,8 @@ class SumoTraffic(Component):
                 self._ego_in_sim = False
                 self._ctx_anchor = None
                 self._readd_ego()
+        if departed and self._ego_in_sim and self._ego_route:
+            self._drop_inserted_ahead(departed)
         if self._ego_in_sim and self._ego_pending_speed is not None:
             try:
                 s.vehicle.setPreviousSpeed(EGO_ID, self._ego_pending_speed)
@@ -2197,6 +2202,50 @@ class SumoTraffic(Component):
                     s.vehicle.remove(vid)
                     n += 1
             except (self._exc, IndexError):
+                pass
+        return n
+
+    def _drop_inserted_ahead(self, departed) -> int:
+        """Take out again, in the step that inserted them, the vehicles of SUMO's demand that
+        went in on the ego's route ahead (its next INSERT_AHEAD_EDGES edges) too close for the
+        ego to stop before them at a normal deceleration (:func:`_cannot_stop`). SUMO inserts
+        a vehicle only where its own followers can brake for it, and the ego, moved by
+        ``moveToXY``, is not one of them: in Helsinki a car that had waited 349 s to go in was
+        put at a standstill on the ego's route two short edges on, 10 m ahead of the car at
+        8.6 m/s, which ran into it. Vehicles carried across a swap (routes ``cosim_keep_*``)
+        stay. Returns how many were taken out."""
+        v_ego = self._ego_pending_speed or 0.0
+        if v_ego < 1.0 or self._ego_pose is None:
+            return 0
+        s = self._sim
+        i = self._ego_route_i
+        ahead = set(self._ego_route[i:i + INSERT_AHEAD_EDGES])
+        x, y, yaw = self._ego_pose
+        c, sn = math.cos(yaw), math.sin(yaw)
+        half = self._ego_spec["length"] / 2.0
+        n = 0
+        for vid in departed:
+            if vid == EGO_ID:
+                continue
+            try:
+                if s.vehicle.getRoadID(vid) not in ahead or s.vehicle.getRouteID(vid).startswith("cosim_keep_"):
+                    continue
+                fx, fy = s.vehicle.getPosition(vid)         # (its front)
+                length, v = s.vehicle.getLength(vid), s.vehicle.getSpeed(vid)
+            except self._exc:
+                continue
+            dx, dy = fx - x, fy - y
+            if dx * c + dy * sn <= half:                    # (its front not ahead of the ego's)
+                continue
+            gap = max(0.0, math.hypot(dx, dy) - length - half)    # its rear to the ego's front
+            if not _cannot_stop(gap, max(0.0, v_ego - v)):
+                continue
+            try:
+                s.vehicle.remove(vid)
+                n += 1
+                log.info("SUMO's %s went in %.1f m ahead of the ego at %.1f m/s, on its route, at t=%.1f s: "
+                         "taken out", vid, gap, v_ego, self.sim_time)
+            except self._exc:
                 pass
         return n
 

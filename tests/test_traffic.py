@@ -936,6 +936,65 @@ def test_sumo_vehicles_where_the_ego_goes_in_are_removed(traffic, blocker_in):
     assert t.stats.collisions == 0
 
 
+def _lane_then_lane(s, first_min: float, second_min: float):
+    """(lane A, lane B): car lanes, A at least `first_min` m long, B at least `second_min`,
+    B reached from A through a junction."""
+    def car(lane):
+        allowed = s.lane.getAllowed(lane)
+        return "passenger" in allowed if allowed else "passenger" not in s.lane.getDisallowed(lane)
+
+    for a in s.edge.getIDList():
+        if a.startswith(":"):
+            continue
+        for i in range(s.edge.getLaneNumber(a)):
+            la = f"{a}_{i}"
+            if car(la) and s.lane.getLength(la) >= first_min:
+                for link in s.lane.getLinks(la):
+                    if not link[0].startswith(":") and car(link[0]) and s.lane.getLength(link[0]) >= second_min:
+                        return la, link[0]
+    raise AssertionError("no two such lanes")
+
+
+def test_a_vehicle_sumo_inserts_in_the_moving_egos_way_is_taken_out(traffic):
+    """SUMO inserts a vehicle only where its own followers can brake for it, and the ego, moved
+    by moveToXY, is not one of them: in Helsinki a car that had waited 349 s to go in was put at
+    a standstill on the ego's route 10 m ahead of the car at 8.6 m/s, which ran into it. One
+    inserted on the ego's route closer than it can stop is taken out in that step; one further
+    on stays, and so does one inserted close ahead of an ego that stands."""
+    t = traffic(seed=2)
+    s = t.sumo
+    la, lb = _lane_then_lane(s, 60.0, 45.0)
+    (a, ia), (b, ib) = [(ln.rsplit("_", 1)[0], int(ln.rsplit("_", 1)[1])) for ln in (la, lb)]
+    t.add_ego([a, b])
+    t.set_ego_route([a, b])
+    front = s.lane.getLength(la) - 9.0
+
+    def drive(speed):
+        fx, fy, angle = lane_pose(s, la, front)
+        cx, cy = front_to_center(fx, fy, angle, 4.5)
+        t.set_ego_pose(cx, cy, sumo_angle_to_yaw(angle), speed)
+        t.step()
+
+    for _ in range(3):
+        drive(13.9)
+        front += 1.39
+    s.route.add("r_b", [b])
+    for vid, pos in (("in_the_way", 1.0), ("further_on", 40.0)):
+        s.vehicle.add(vid, "r_b", typeID="DEFAULT_VEHTYPE", depart="now", departPos=f"{pos}", departSpeed="0",
+                      departLane=str(ib))
+    drive(13.9)
+    ids = set(s.vehicle.getIDList())
+    assert "further_on" in ids and EGO_ID in ids
+    assert "in_the_way" not in ids
+    assert "in_the_way" in s.simulation.getDepartedIDList()      # (SUMO did put it in, this step)
+    # an ego that stands can wait for one: it stays
+    drive(0.0)
+    s.vehicle.add("before_a_standing_ego", "r_b", typeID="DEFAULT_VEHTYPE", depart="now", departPos="1",
+                  departSpeed="0", departLane=str(ib))
+    drive(0.0)
+    assert "before_a_standing_ego" in set(s.vehicle.getIDList())
+
+
 def _two_lane_edge(s):
     """(edge, lane index i): the first edge over 100 m long where cars may use lanes i and i + 1."""
     def car(lane):
