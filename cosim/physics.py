@@ -50,6 +50,12 @@ _SIDES = 12     # a cylinder collider's prism
 _DONE = object()  # (a tile's parts are all made)
 
 
+#: the sky of camera_image, where the camera sees nothing: a pale blue at the bottom of the
+#: picture, deeper at its top (PyBullet's own renderers leave it white)
+SKY_HORIZON_RGB = (196, 218, 240)
+SKY_TOP_RGB = (110, 158, 214)
+
+
 def compact_order(xy: np.ndarray, run: int) -> np.ndarray:
     """An order of the points ``xy`` (n, 2) whose consecutive runs of ``run`` (the last
     shorter) each cover a compact box: the set is halved across its longer side, at a
@@ -658,13 +664,22 @@ class PhysicsWorld:
 
     # --- queries --------------------------------------------------------------------------
     def camera_image(self, eye, target, width=640, height=400, fov=60.0, far=600.0, up=(0, 0, 1)):
+        """An RGB picture (height, width, 3) from ``eye`` towards ``target``. Where the camera
+        sees nothing (PyBullet leaves those pixels white), a sky: :data:`SKY_TOP_RGB` at the
+        top of the picture to :data:`SKY_HORIZON_RGB` at its bottom."""
         c = self.client
         view = pb.computeViewMatrix(eye, target, up, physicsClientId=c)
         proj = pb.computeProjectionMatrixFOV(fov, width / height, 0.5, far, physicsClientId=c)
         renderer = pb.ER_BULLET_HARDWARE_OPENGL if self.gui else pb.ER_TINY_RENDERER
         _, _, rgb, depth, seg = pb.getCameraImage(width, height, view, proj, renderer=renderer,
                                                   shadow=0, physicsClientId=c)
-        return np.reshape(np.asarray(rgb, dtype=np.uint8), (height, width, 4))[:, :, :3]
+        img = np.array(np.reshape(np.asarray(rgb, dtype=np.uint8), (height, width, 4))[:, :, :3])
+        sky = np.reshape(np.asarray(seg), (height, width)) < 0
+        if sky.any():
+            t = np.linspace(0.0, 1.0, height)[:, None]
+            rows = np.rint((1.0 - t) * np.array(SKY_TOP_RGB) + t * np.array(SKY_HORIZON_RGB)).astype(np.uint8)
+            img[sky] = np.broadcast_to(rows[:, None, :], img.shape)[sky]
+        return img
 
     def body_kind(self, body: int) -> str:
         """What a static body is: terrain, a mesh class of a tile, or scenery."""

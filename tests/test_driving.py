@@ -553,9 +553,8 @@ def test_env_rgb_array_render_draws_the_world_and_a_headless_camera_says_it_cann
     was the empty background with the car in it."""
     from cosim.env import DrivingEnv
 
-    def background_share(img) -> float:            # PyBullet's sky: near-white
-        low = np.asarray(img)[img.shape[0] // 2:, :, :3].astype(int)
-        return float(np.mean(low.min(axis=2) > 235))
+    def background_share(img) -> float:            # the sky camera_image draws where it sees nothing
+        return float(np.mean(sky_mask(img)[img.shape[0] // 2:]))
 
     env = DrivingEnv(SimConfig(world_dir=helsinki, traffic="none", start=HEL_MID, speed_mps=10.0, duration_s=20),
                      render_mode="rgb_array")
@@ -578,6 +577,12 @@ def test_env_rgb_array_render_draws_the_world_and_a_headless_camera_says_it_cann
     assert len(said) == 1 and "render=True" in said[0].getMessage()
 
 
+def sky_mask(img) -> np.ndarray:
+    """Pixels of camera_image's sky (cosim.physics SKY_TOP_RGB .. SKY_HORIZON_RGB: blue, light)."""
+    a = np.asarray(img)[..., :3].astype(int)
+    return (a[..., 2] >= 200) & (a[..., 2] - a[..., 0] >= 30)
+
+
 def test_the_drivers_view_looks_out_over_the_bonnet(helsinki):
     """``camera_image(view="driver")`` sees the road ahead over the bonnet: the car's paint only
     in the lowest part of the picture. The camera sat inside the cabin and saw the inside of
@@ -593,8 +598,14 @@ def test_the_drivers_view_looks_out_over_the_bonnet(helsinki):
     paint = (b > 140) & (r < 70) & (g < 120)          # models/car's paint, rgba 0.10 0.30 0.70
     rows = np.nonzero(paint.any(axis=1))[0]
     assert len(rows) and rows.min() > 0.7 * img.shape[0] and paint.mean() < 0.25, (rows.min(), paint.mean())
-    assert not (b > r + 40)[: img.shape[0] // 2].any()     # nothing of the car (its roof's edge) up there
-    assert ((img.min(axis=2) > 235)[: img.shape[0] // 3]).mean() > 0.05      # some sky in the upper third
+    sky = sky_mask(img)
+    assert not ((b > r + 40) & ~sky)[: img.shape[0] // 2].any()     # nothing of the car (its roof's edge) up there
+    assert sky[: img.shape[0] // 3].mean() > 0.05      # some sky in the upper third
+    # the sky: PyBullet left it white; a gradient from the top of the picture to its bottom
+    from cosim.physics import SKY_TOP_RGB
+    top = img[0][sky[0]]
+    assert len(top) and np.all(np.abs(top - np.array(SKY_TOP_RGB)) <= 1), top[:3]
+    assert not (img.min(axis=2) > 250).any()          # (no white left)
 
 
 def _arc_path(radius: float, angle_deg: float):
