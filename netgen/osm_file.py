@@ -54,6 +54,23 @@ def _conversion_error(path: Path, out: Path, e: Exception) -> Exception:
     return _corrupt(path, e)
 
 
+def _give_up(writer) -> None:
+    """Close a pyosmium writer after an error, or else never let it be destroyed. A writer
+    whose output failed (a full disk) keeps the buffer it could not write, and destroying it
+    writes that buffer again; libosmium, in its error state, throws from the destructor and
+    the process aborts ("terminate called after throwing an instance of 'osmium::io_error'"),
+    after the build had said "disk full while writing ...". Such a writer keeps one more
+    reference, so it is never destroyed (its memory stays with the process: a failed build's)."""
+    try:
+        writer.close()
+        return
+    except Exception:
+        pass
+    import ctypes
+
+    ctypes.pythonapi.Py_IncRef(ctypes.py_object(writer))
+
+
 def _check_readable(path: Path) -> None:
     if not path.exists():
         raise DataError(f"OSM file not found: {path}")
@@ -252,8 +269,10 @@ def to_osm_xml(path: Path, cache_dir: Path) -> tuple[Path, dict]:
                 r = osmium.MergeInputReader()
                 r.add_file(str(path))
                 r.apply(w)
-            finally:
                 w.close()           # (writes what is buffered: a full disk may show here)
+            except BaseException:
+                _give_up(w)
+                raise
         except Exception as e:    # libosmium: a parse error, a truncated block (RuntimeError subclasses)
             raise _conversion_error(path, out, e) from None
         counts = count_xml(tmp)
@@ -348,7 +367,9 @@ def _write_network(src: Path, out: Path) -> dict:
         osmium.apply(src, osmium.filter.EntityFilter(osmium.osm.WAY), ways, writer)
         for r in rels:
             writer.add_relation(r)
-    finally:
         writer.close()
+    except BaseException:
+        _give_up(writer)
+        raise
     return {"network_ways": len(way_ids), "network_nodes": len(node_ids), "network_relations": len(rels),
             "level": level}

@@ -1400,6 +1400,26 @@ def test_a_full_disk_is_a_clear_error_and_leaves_nothing_trusted(tmp_path, small
     assert load_world_json(tmp_path / "w2")["counts"]["road_edges"] > 100
 
 
+def test_an_osm_conversion_that_fills_the_disk_ends_cleanly(small_disk):
+    """pyosmium's writer whose output failed kept its unwritten buffer, and destroying it wrote
+    that again: libosmium threw from the destructor and the process aborted ("terminate called
+    after throwing an instance of 'osmium::io_error'", exit code -6) after saying "disk full".
+    Where the write fails depends on the room left, so several amounts are tried, each in its
+    own process."""
+    code = ("import gc, sys; from pathlib import Path; from netgen.osm_file import network_xml\n"
+            "from netgen.errors import BuildError\n"
+            "try:\n    network_xml(Path(sys.argv[1]), Path(sys.argv[2]))\n"
+            "except BuildError as e:\n    print(e)\n"
+            "gc.collect()\n")
+    for leave in range(20_000, 260_000, 20_000):      # (the extract is about 300 KB)
+        small_disk.fill(leave=leave)
+        r = subprocess.run([sys.executable, "-c", code, str(REPO / "netgen/presets/kouvola.osm.pbf"),
+                            str(small_disk.path / "c")], capture_output=True, text=True, timeout=300, cwd=REPO)
+        assert r.returncode == 0, (leave, r.returncode, r.stderr[-300:])
+        assert r.stdout.startswith("disk full while writing "), (leave, r.stdout)
+        small_disk.empty()
+
+
 def test_read_only_filesystem_output(tmp_path):
     """Root ignores permissions, but /proc is read-only for everyone."""
     r = _cli(["build", "--preset", "kouvola", "--out", "/proc/cosim-world"], tmp_path,
