@@ -310,6 +310,7 @@ class TrafficStats:
 
 EGO_INSERT_DECEL = 4.5     # m/s², a vehicle behind the ego as it goes into SUMO must stop at this (_clear_ego_footprint)
 SWAP_WARM_S = 1.0          # a new SUMO runs this long before actors are carried into it
+KEEP_ROUTE_PREFIX = "cosim_keep_"   # the routes of the vehicles carried across a swap
 #: how many edges of the ego's route ahead are watched for vehicles SUMO inserts in its way
 #: (_drop_inserted_ahead)
 INSERT_AHEAD_EDGES = 8
@@ -2212,7 +2213,7 @@ class SumoTraffic(Component):
         a vehicle only where its own followers can brake for it, and the ego, moved by
         ``moveToXY``, is not one of them: in Helsinki a car that had waited 349 s to go in was
         put at a standstill on the ego's route two short edges on, 10 m ahead of the car at
-        8.6 m/s, which ran into it. Vehicles carried across a swap (routes ``cosim_keep_*``)
+        8.6 m/s, which ran into it. Vehicles carried across a swap (routes KEEP_ROUTE_PREFIX*)
         stay. Returns how many were taken out."""
         v_ego = self._ego_pending_speed or 0.0
         if v_ego < 1.0 or self._ego_pose is None:
@@ -2228,7 +2229,7 @@ class SumoTraffic(Component):
             if vid == EGO_ID:
                 continue
             try:
-                if s.vehicle.getRoadID(vid) not in ahead or s.vehicle.getRouteID(vid).startswith("cosim_keep_"):
+                if s.vehicle.getRoadID(vid) not in ahead or s.vehicle.getRouteID(vid).startswith(KEEP_ROUTE_PREFIX):
                     continue
                 fx, fy = s.vehicle.getPosition(vid)         # (its front)
                 length, v = s.vehicle.getLength(vid), s.vehicle.getSpeed(vid)
@@ -2425,7 +2426,7 @@ class SumoTraffic(Component):
                 # stands there: until it moves, actors_near reports the speed it had
                 self._moved_persons[new_id] = (k.x, k.y, k.speed)
         else:
-            rid = f"cosim_keep_{new_id}"
+            rid = f"{KEEP_ROUTE_PREFIX}{new_id}"
             s.route.add(rid, edges)
             s.vehicle.add(new_id, rid, typeID=k.type_id, depart="now",
                           departLane=str(lane) if lane >= 0 else "best",
