@@ -2,9 +2,10 @@
 
 A *window* is a complete build (``netgen.build``) of the chunks within ``rings`` of one chunk,
 in the world's one frame. The run starts in the window around the reference point. When the
-car leaves that window's centre chunk, the window centred on the car's chunk is built in a
-worker process (netconvert, layers and traffic demand: Python threads would not help, and a
-spawned process shares no libsumo or PyBullet state), into ``<world>/windows/<i>_<j>``.
+car leaves that window's centre chunk, the window centred on the chunk its route reaches
+:data:`LOOKAHEAD_S` ahead (one next to the car's, or the car's own) is built in a worker
+process (netconvert, layers and traffic demand: Python threads would not help, and a spawned
+process shares no libsumo or PyBullet state), into ``<world>/windows/<i>_<j>``.
 When it is ready:
 
 * with SUMO in its worker process, SUMO is first started on the new network and demand in a
@@ -17,6 +18,11 @@ When it is ready:
   positions and speeds and their mirrored bodies (re-keyed to the new SUMO ids), so none
   visibly vanishes, and the new demand's own actors there make room for them;
 * the ego's route is planned again on the new network.
+
+A window whose swap comes when the car is no further inside it than inside the current one
+waits for the car to drive further in; it is given up (and the window the car needs built
+next) where the car is back in the current centre chunk, outside the new window, or near the
+current window's edge.
 
 A run is repeatable (``SimConfig.repeatable``, the default): the swap comes
 :data:`SWAP_DELAY_S` of simulated time after the build started, or once the car is within
@@ -45,6 +51,11 @@ BUILD_NICENESS = 5     # window builds run at this niceness (netconvert inherits
 #: window reaches a chunk, 1 km, beyond its centre chunk: at 30 m/s that is 20 s away)
 SWAP_DELAY_S = 60.0
 SWAP_EDGE_M = 400.0
+#: the next window is centred on the chunk of the route this many seconds ahead of the car at
+#: its set speed (within LOOKAHEAD_M): a car that crosses a chunk's corner, or starts in a
+#: chunk it is leaving, gets the window it drives into, not the one it leaves
+LOOKAHEAD_S = 20.0
+LOOKAHEAD_M = (100.0, 600.0)
 
 
 def _build_window(cfg_dict: dict, window: tuple, out: str, traffic, seed: int, duration: float, conn):
@@ -93,6 +104,7 @@ class WorldStreamer:
         self.plan_asked = False           # the car's route asked of the SUMO started ahead
         self._ending: list = []           # build processes that answered, exiting
         self.build_s: list = []
+        self.dropped: list = []           # windows built but not swapped to: the car had left them
         self.errors: list = []
         self.enabled = self.base_cfg is not None
         if not self.enabled:
@@ -114,12 +126,18 @@ class WorldStreamer:
         if self.ready is not None:
             if due is False:
                 return                          # (SUMO goes on loading in its own process)
-            self._swap_when_ready(block=due is True)
+            verdict = self._verdict(self.ready[0], x, y)
+            if verdict == "drop":
+                self._drop_ready(x, y)
+            elif verdict == "swap":
+                self._swap_when_ready(block=due is True)
             return
         ij = self.sim.world.frame.chunk_of(x, y)
-        if self.proc is None and ij != self.center and ij not in self.built:
-            self._start(ij)
-            due = self._due(x, y)
+        if self.proc is None and ij != self.center:
+            ij = self._target(x, y, ij)
+            if ij != self.center and ij not in self.built:
+                self._start(ij)
+                due = self._due(x, y)
         if self.proc is not None and (due is True or self.conn.poll() or self.proc.poll() is not None):
             t_wait = time.perf_counter()
             try:
@@ -148,7 +166,62 @@ class WorldStreamer:
                     log.info("could not start SUMO ahead on the next network: %s", e)
             self.ready = (window, out, routes)
             if due is not False:                # (due now: in this frame, whenever the build ended)
-                self._swap_when_ready(block=due is True)
+                verdict = self._verdict(window, x, y)
+                if verdict == "drop":
+                    self._drop_ready(x, y)
+                elif verdict == "swap":
+                    self._swap_when_ready(block=due is True)
+
+    def _target(self, x: float, y: float, ij: tuple) -> tuple:
+        """The chunk to centre the next window on, for a car in chunk ``ij``: the chunk of its
+        route :data:`LOOKAHEAD_S` ahead, no further than the chunks around ``ij`` (the car's own
+        chunk stays in the window). (Centred on the car's chunk, a car that started in a corner
+        of the world's chunk (0, 1), driving away from it down the Kouvola motorway, was swapped
+        60 s later into the window around (0, 1), 1.5 km behind it, whose network did not reach
+        its goal.)"""
+        sim = self.sim
+        if getattr(sim, "goal_beyond", False) and sim.goal_xy is not None:
+            # (the route ends where this window's network does, short of the goal: towards it)
+            gi, gj = sim.world.frame.chunk_of(*sim.goal_xy)
+            return (ij[0] + (gi > ij[0]) - (gi < ij[0]), ij[1] + (gj > ij[1]) - (gj < ij[1]))
+        path = getattr(sim, "path", None)
+        if path is None or not len(path.s):
+            return ij
+        lo, hi = LOOKAHEAD_M
+        ahead = min(max(float(sim.cfg.speed_mps) * LOOKAHEAD_S, lo), hi)
+        k = min(max(int(getattr(sim, "_path_idx", 0)), 0), len(path.s) - 1)
+        px, py = path.point_at(float(path.s[k]) + ahead)
+        ti, tj = sim.world.frame.chunk_of(float(px), float(py))
+        return (min(max(ti, ij[0] - 1), ij[0] + 1), min(max(tj, ij[1] - 1), ij[1] + 1))
+
+    def _verdict(self, window: tuple, x: float, y: float) -> str:
+        """What to do with the built window around chunk ``window`` now that its swap is due,
+        for the car at (x, y): "swap" where it holds the car further from its edge than the
+        current window does; else "drop" where the car is back in the current window's centre
+        chunk, outside the new window's chunks or near the current window's edge (then the
+        window it needs is built next); else "wait" (it drives on into the new window)."""
+        here = self._edge_distance(x, y)
+        if self._edge_distance(x, y, window) > here:
+            return "swap"
+        rings = int((self.base_cfg or {}).get("chunks", 1))
+        ci, cj = self.sim.world.frame.chunk_of(x, y)
+        if (ci, cj) == self.center or max(abs(ci - window[0]), abs(cj - window[1])) > rings \
+                or here <= SWAP_EDGE_M:
+            return "drop"
+        return "wait"
+
+    def _drop_ready(self, x: float, y: float) -> None:
+        """Give up a built window that the car has left behind (it stays on disk: a later build
+        of it reuses it), and SUMO started ahead on its network."""
+        window = self.ready[0]
+        self.ready = None
+        self.plan_asked = False
+        self.due_t = None
+        if hasattr(self.sim.traffic, "discard_prepared"):
+            self.sim.traffic.discard_prepared()
+        self.dropped.append(window)
+        log.info("not swapping to the window around chunk %s: the car, now in chunk %s, has left it behind",
+                 window, self.sim.world.frame.chunk_of(x, y))
 
     def _due(self, x: float, y: float):
         """In a repeatable run, whether the swap's time has come (True / False; once come, it
@@ -166,10 +239,11 @@ class WorldStreamer:
             self.waited_s.append(round(waited, 2))
             log.info("waited %.1f s for %s at the swap's time (a repeatable run)", waited, what)
 
-    def _edge_distance(self, x: float, y: float) -> float:
-        """How far (m) (x, y) is inside the current window's square of chunks."""
+    def _edge_distance(self, x: float, y: float, window: tuple | None = None) -> float:
+        """How far (m) (x, y) is inside the current window's square of chunks (or that of the
+        window around chunk ``window``)."""
         rings = int((self.base_cfg or {}).get("chunks", 1))
-        frame, (ci, cj) = self.sim.world.frame, self.center
+        frame, (ci, cj) = self.sim.world.frame, (self.center if window is None else window)
         x0, y0, _, _ = frame.chunk_bounds(ci - rings, cj - rings)
         _, _, x1, y1 = frame.chunk_bounds(ci + rings, cj + rings)
         return min(x - x0, x1 - x, y - y0, y1 - y)

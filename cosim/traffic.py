@@ -1691,7 +1691,7 @@ class SumoTraffic(Component):
         return fixed[:end]
 
     def plan_route(self, lane: str, pos: float, goal_xy=None, rng_state=None, max_goal_snap_m: float = 1e9,
-                   min_len: float = 800.0, keep_lane: bool = False, at_xy=None) -> dict:
+                   min_len: float = 800.0, keep_lane: bool = False, at_xy=None, beyond_ok: bool = False) -> dict:
         """The ego's route from ``pos`` on ``lane``, and its ``LanePath``: to the lane nearest to
         ``goal_xy`` (SUMO's router), else a random route (``random_route``). ``goal`` in the
         answer: snapped lane, point and distance; ``route`` is empty and ``path`` None when the
@@ -1699,7 +1699,9 @@ class SumoTraffic(Component):
         road is one that ``lane`` itself leads to (no lane change on this road): the fastest
         such way to the goal, else a random route on from one of them; with ``at_xy`` too, from
         the lane of ``lane``'s road nearest to that point (the lane the car is in) and its
-        position there."""
+        position there. With ``beyond_ok``, a goal further than ``max_goal_snap_m`` from this
+        network's roads (a streamed window that does not reach it) is routed to its nearest road
+        here, and the answer's goal says ``beyond``."""
         s = self._require()
         edge = lane.rsplit("_", 1)[0]
         firsts = [edge]
@@ -1729,7 +1731,9 @@ class SumoTraffic(Component):
                 street = ""
             out["goal"] = dict(lane=glane, pos=gpos, x=gpx, y=gpy, dist=gdist, street=street)
             if gdist > max_goal_snap_m:
-                return dict(out, route=[], path=None)
+                if not beyond_ok:
+                    return dict(out, route=[], path=None)
+                out["goal"]["beyond"] = True
             best = None
             for first in firsts:
                 try:

@@ -136,6 +136,11 @@ def test_drives_to_gps_goal_in_lane_across_junctions(helsinki, tmp_path):
         sim.teardown()
     assert info["route_length_m"] > 300 and info["eta_s"] > 0 and info["goal_snap_m"] < 10
     assert summary.arrived, summary.line()
+    # the route's length is the drive's, from the car to the goal (SUMO's counts its first and
+    # last roads whole: 503 m for this drive of 450), and the ETA is at most the set speed
+    assert abs(info["route_length_m"] - summary.distance_m) < 0.02 * summary.distance_m + 5.0, \
+        (info, summary.distance_m)
+    assert info["route_length_m"] / 10.0 <= info["eta_s"] <= sim.t, (info, sim.t)
     assert goal_d < 10.0
     assert sum(1 for stop in stops if stop.s < front) >= 5          # junctions crossed
     assert all(l[6] != "t" for l in links)                           # no U-turn in the lane plan

@@ -492,6 +492,15 @@ def test_run_with_live_controls_then_stop(win, qtbot, kouvola_world):
     assert win.last_goal["route_length_m"] > 100
     assert "m to the destination" in win.live["route"].text()
     assert math.hypot(win.map.goal_xy[0] - gxy[0], win.map.goal_xy[1] - gxy[1]) < 10.0
+    # the route's length left counts down as the car drives (it stayed at the first figure)
+    m0 = win.last_goal["route_length_m"]
+
+    def left():
+        txt = win.live["route"].text()
+        return float(txt.split(" m to")[0]) if " m to the destination" in txt else None
+
+    qtbot.waitUntil(lambda: left() is not None and left() < m0 - 10.0, timeout=30_000)
+    assert abs(left() - win.last_frame["route_left"][0]) < 1.0 and win.last_frame["route_left"][1] > 0
     # one with no road near it is refused; the car drives on
     win.last_goal = None
     win.ed_dest_lat.setText(str(OFFROAD[0]))

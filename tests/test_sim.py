@@ -317,7 +317,10 @@ def test_next_window_built_in_background_and_swapped_in(motorway_world):
             sim.step()
         window = sim.streamer.building
         assert window is not None and window != (0, 0)
-        assert window == sim.world.frame.chunk_of(sim.vehicle.state().x, sim.vehicle.state().y)
+        # the chunk the route reaches LOOKAHEAD_S ahead, the car's own chunk or one next to it
+        ci, cj = sim.world.frame.chunk_of(sim.vehicle.state().x, sim.vehicle.state().y)
+        assert abs(window[0] - ci) <= 1 and abs(window[1] - cj) <= 1
+        assert window == sim.streamer._target(sim.vehicle.state().x, sim.vehicle.state().y, (ci, cj))
         deadline = time.time() + 900
         while sim.streamer.proc.poll() is None and time.time() < deadline:
             time.sleep(0.5)                       # wall clock: the build runs beside the loop
@@ -362,6 +365,95 @@ def test_next_window_built_in_background_and_swapped_in(motorway_world):
     assert summary.distance_m - d0 > 100
     assert summary.sensor_range_violations == 0
     assert summary.ego_collisions == 0, sim.collision_log
+
+
+def test_the_next_window_is_the_one_the_car_drives_into(motorway_world):
+    """The freeway scenario: the car starts in a corner of the world's chunk (0, 1) and drives
+    the motorway south-west to a goal 2 km on, in chunk (-1, -1). The window around the car's
+    own chunk, (0, 1), was built at once and swapped in 60 s later, 1.5 km behind the car; its
+    network did not reach the goal, and the run ended with "goal is 220 m from the nearest road
+    for cars". The window is now the one the route runs into, and a window the car has left by
+    its swap is not swapped to."""
+    repo = Path(__file__).resolve().parents[1]
+    cfg = SimConfig.from_toml(repo / "scenarios" / "kouvola-freeway.toml")
+    cfg.world_dir, cfg.telemetry = str(motorway_world), None
+    sim = Simulation(cfg).setup()
+    try:
+        x0, y0 = sim.vehicle.state().x, sim.vehicle.state().y
+        assert sim.world.frame.chunk_of(x0, y0) == (0, 1)
+        built = []
+        while not sim.summary.arrived and sim.t < cfg.duration_s:
+            sim.step()
+            if sim.streamer.building is not None and sim.streamer.building not in built:
+                built.append(sim.streamer.building)
+        summary = sim.finish()
+        streamer = sim.streamer
+    finally:
+        sim.teardown()
+    assert summary.arrived, summary.line()
+    assert (0, 1) not in built and built and all(i <= 0 and j <= 0 for i, j in built), built
+    assert streamer.swaps >= 1 and not streamer.errors and not streamer.dropped
+    assert summary.distance_m > 1900 and summary.ego_collisions == 0
+
+
+def test_a_window_the_car_has_left_is_not_swapped_to(motorway_world):
+    """A window built for where the car was, ready when the car is no further inside it than
+    inside the current one, is given up (SUMO started ahead on it too) and not swapped to."""
+    cfg = SimConfig(world_dir=str(motorway_world), traffic="none", seed=3, speed_mps=25.0, duration_s=60.0,
+                    repeatable=False)
+    sim = Simulation(cfg).setup()
+    try:
+        for _ in range(10):
+            sim.step()
+        st = sim.vehicle.state()
+        here = sim.world.frame.chunk_of(st.x, st.y)
+        far = (here[0] + 1, here[1] + 1)            # a window around a chunk the car is not in
+        assert here == sim.streamer.center and sim.streamer._verdict(far, st.x, st.y) == "drop"
+        sim.streamer._start(far)
+        import time
+        deadline = time.time() + 900
+        while sim.streamer.proc.poll() is None and time.time() < deadline:
+            time.sleep(0.5)
+        sim.step()                                  # the build's answer: dropped, not swapped
+        assert sim.streamer.dropped == [far] and sim.streamer.ready is None and sim.streamer.swaps == 0
+        assert getattr(sim.traffic, "preparing", None) is None
+        assert sim.streamer.center == (0, 0) and not sim.streamer.errors
+        for _ in range(20):
+            sim.step()
+        assert sim.streamer.swaps == 0
+    finally:
+        sim.teardown()
+
+
+def test_a_goal_beyond_a_new_networks_roads_is_driven_towards(motorway_world):
+    """After a swap, the route is planned again on the window's network, which may not reach a
+    goal the world's network reached (a window is cut around the car's chunks): the route goes
+    towards the goal as far as the network does, and the goal stays (it ended the run with "goal
+    is 220 m from the nearest road for cars")."""
+    cfg = SimConfig(world_dir=str(motorway_world), traffic="none", seed=3, speed_mps=25.0, duration_s=60.0,
+                    goal=(60.521641, 26.947662))
+    sim = Simulation(cfg).setup()
+    try:
+        for _ in range(20):
+            sim.step()
+        goal = sim.goal_xy
+        args, kw = sim.replan_args()
+        # as a network would answer that ends 300 m short of the goal: the goal asked of it
+        # lies 300 m beyond the road it snaps to
+        kw["goal_xy"] = (goal[0] - 300.0, goal[1] - 300.0)
+        plan = sim.traffic.replan_from(*args, **kw)
+        assert plan["goal"]["beyond"] and plan["route"]
+        sim.replan(plan)
+        assert sim.goal_beyond and sim.goal_xy == goal and not sim.summary.arrived
+        for _ in range(20):
+            sim.step()
+        # and a re-plan that reaches the goal takes it again
+        sim.replan()
+        assert not sim.goal_beyond and math.hypot(sim.goal_xy[0] - goal[0], sim.goal_xy[1] - goal[1]) < 1.0
+        kw["beyond_ok"] = False                     # (a plan asked without it: an empty route)
+        assert sim.traffic.replan_from(*args, **kw)["route"] == []
+    finally:
+        sim.teardown()
 
 
 def test_the_same_seed_repeats_the_run_across_a_window_swap(motorway_world):

@@ -560,6 +560,9 @@ class MainWindow(QMainWindow):
         self.live["control"].setText(f"throttle {th:.0%} · brake {br:.0%} · steer {st:+.0%}")
         if f.get("arrived"):
             self.live["route"].setText("arrived at the destination")
+        elif f.get("route_left") is not None:
+            m, eta = f["route_left"]
+            self.live["route"].setText(f"{m:.0f} m to the destination, ETA {eta:.0f} s")
         self.map.set_frame(f)
         if "camera" in f:
             self.camera.set_image(f["camera"])

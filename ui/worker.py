@@ -297,7 +297,7 @@ class SimWorker(QObject):
         sim = self.sim
         f = {"ego": asdict(ego), "actors": sim.actors(), "control": tuple(sim.last_control),
              "manual": sim.manual is not None, "speed_mps": sim.cfg.speed_mps,
-             "arrived": sim.summary.arrived, "t": sim.t}
+             "arrived": sim.summary.arrived, "t": sim.t, "route_left": sim.route_left()}
         if sim.path is not self._last_path:
             self._last_path = sim.path
             f["route"] = np.array(sim.path.xy, dtype=float)
