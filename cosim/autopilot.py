@@ -92,6 +92,8 @@ NEAR_MISS_TTC_S = 1.5
 NEAR_MISS_GAP_M = 2.0
 SENSE_RANGE_M = 80.0       # obstacles on the path are considered up to here
 STANDOFF_S = 20.0          # the car and a vehicle in its sweep both standing this long: a standoff
+STANDOFF_CREEP_MPS = 0.5   # _standoff: slower than this is standing (the car creeps up to what it waits for)
+STANDOFF_GAP_M = 5.0       # _standoff: a vehicle on a lane over the path this near is waited for, whatever binds
 LEVEL_REACH_M = 40.0       # ... looked at for actors this near (in x and y) where the path is up there
 CROSS_LANE_MARGIN_M = 3.5  # a crossing vehicle's road may have a lane nearer than its own
 LANE_CONFLICT_MARGIN_M = 0.5  # a junction lane over the path: clear of the two bodies by this
@@ -503,16 +505,21 @@ class Autopilot:
         SUMO had merge ahead of it, which waited behind the car). That vehicle is taken out of SUMO (``SumoTraffic.release_standoff``:
         SUMO's own remedy for a jam, sooner), once."""
         who = self.sweep[1] if self.sweep is not None and self.reason.startswith("clearance") else None
-        if who is None and self.reason == "lead vehicle" and self.lead is not None and self.lead.source == "conflict":
-            who = self.lead.actor      # (waited for on a lane over the path: Monaco, seed 1)
-        if who is None or v > 0.1:
+        if who is None and self.lead is not None and self.lead.source == "conflict" \
+                and self.lead.gap < STANDOFF_GAP_M:
+            # (waited for on a lane over the path: Monaco, seed 1; also while the binding
+            # reason flips to "curve" as the car creeps up to it: the Kouvola motorway's
+            # junction cluster 2453037388, where the car crept at 0.2 m/s and the wait began
+            # again at each flip, for 95 s, until SUMO teleported a vehicle)
+            who = self.lead.actor
+        if who is None or v > STANDOFF_CREEP_MPS:
             self._standoff_with = None
             return
         try:
             k = actors.index(who)
         except (KeyError, ValueError, IndexError):
             k = None
-        if k is None or actors.kind[k] == "person" or float(actors.speed[k]) > 0.1:
+        if k is None or actors.kind[k] == "person" or float(actors.speed[k]) > STANDOFF_CREEP_MPS:
             self._standoff_with = None
             return
         if self._standoff_with is None or self._standoff_with[0] != who:

@@ -73,6 +73,7 @@ TRACI_START_TIMEOUT_S = 120   # seconds a TraCI SUMO has to load its network and
 DEFAULT_CONTEXT_RADIUS = 150.0
 EGO_JOINT_NUDGE_M = 0.3       # a front bumper in the gap at a lane joint is mapped this far on (_across_joint)
 STANDOFF_CHAIN = 2            # release_standoff: standing vehicles between the one taken out and the ego
+STANDOFF_CREEP_MPS = 0.5      # waits_for_ego: a vehicle in the chain slower than this stands
 EGO_MATCH_RADIUS_M = 15.0      # the ego is mapped onto a lane within this distance, else off the network
 PERSON_YIELD_RANGE_M = 15.0    # pedestrians this near the ego are checked (see _persons_yield)
 PERSON_YIELD_MARGIN_M = 0.5    # they stop this far outside the ego's footprint
@@ -808,7 +809,9 @@ class SumoTraffic(Component):
             while lead and lead[0] and lead[1] < 10.0:
                 if lead[0] == EGO_ID:
                     return True
-                if hops >= chain or s.vehicle.getSpeed(lead[0]) >= 0.1:
+                # (a vehicle that creeps up behind the ego is as good as standing: SUMO had one
+                # at 0.13 m/s, 0.13 m behind the standing ego, for a minute)
+                if hops >= chain or s.vehicle.getSpeed(lead[0]) >= STANDOFF_CREEP_MPS:
                     return False
                 hops += 1
                 lead = s.vehicle.getLeader(lead[0], 10.0)
@@ -836,8 +839,8 @@ class SumoTraffic(Component):
             # (a standing vehicle ahead of it is a queue, unless the queue ends at the ego: a
             # circle with the car)
             lead = s.vehicle.getLeader(vid, 10.0)
-            if lead and lead[0] and lead[0] != EGO_ID and lead[1] < 10.0 and s.vehicle.getSpeed(lead[0]) < 0.1 \
-                    and not self.waits_for_ego(vid):
+            if lead and lead[0] and lead[0] != EGO_ID and lead[1] < 10.0 \
+                    and s.vehicle.getSpeed(lead[0]) < STANDOFF_CREEP_MPS and not self.waits_for_ego(vid):
                 return False
             s.vehicle.remove(vid, tc.REMOVE_VAPORIZED)
         except self._exc:

@@ -1145,6 +1145,28 @@ def test_a_vehicle_in_a_queue_behind_the_ego_is_taken_out_after_a_standoff(traff
     assert "last" not in ids and {"next", "held", "lead"} <= ids
 
 
+def test_a_vehicle_creeping_up_behind_the_ego_still_waits_for_it(traffic):
+    """The Kouvola motorway's junction cluster 2453037388 (seed 1): the car waited inside the
+    junction for a vehicle standing on a lane over its path, which SUMO had wait behind another
+    that crept at 0.13 m/s up behind the standing car. The creeping one broke the chain
+    (``waits_for_ego`` took only vehicles under 0.1 m/s as standing), so the car waited 95 s,
+    until SUMO teleported a vehicle. A vehicle creeping under STANDOFF_CREEP_MPS stands."""
+    t = traffic(seed=2)
+    s = t.sumo
+    lane, edge = _vehicles_on_a_lane(s, 150.0, {"next": 46.5, "last": 36.5}, 0.0)
+    fx, fy, angle = lane_pose(s, lane, 60.0)            # the ego's rear 55.5 m in: "next" 9 m behind it
+    cx, cy = front_to_center(fx, fy, angle, 4.5)
+    t.add_ego([edge])
+    for _ in range(150):                                # 15 s: "next" creeps, "last" stands
+        t.set_ego_pose(cx, cy, sumo_angle_to_yaw(angle), 0.0)
+        s.vehicle.setSpeed("next", 0.13)
+        s.vehicle.setSpeed("last", 0.0)
+        t.step()
+    assert 0.1 < s.vehicle.getSpeed("next") < 0.5
+    assert s.vehicle.getLeader("last", 10.0)[0] == "next" and s.vehicle.getLeader("next", 10.0)[0] == EGO_ID
+    assert t.waits_for_ego("next") and t.waits_for_ego("last")
+
+
 def test_the_ego_stays_on_the_network_across_a_lane_joint_at_a_bend(traffic):
     """``moveToXY`` finds no lane for a point just past a lane's end on the outer side of a
     bend at the joint with the next lane (the perpendicular foot lies beyond the one lane's end
