@@ -105,6 +105,7 @@ class WorldStreamer:
         self._ending: list = []           # build processes that answered, exiting
         self.build_s: list = []
         self.dropped: list = []           # windows built but not swapped to: the car had left them
+        self._dropped_at = None           # (the last one, the car's chunk then)
         self.errors: list = []
         self.enabled = self.base_cfg is not None
         if not self.enabled:
@@ -134,8 +135,9 @@ class WorldStreamer:
             return
         ij = self.sim.world.frame.chunk_of(x, y)
         if self.proc is None and ij != self.center:
-            ij = self._target(x, y, ij)
-            if ij != self.center and ij not in self.built:
+            here, ij = ij, self._target(x, y, ij)
+            # (not the window just given up again while the car is in the chunk it was given up in)
+            if ij != self.center and ij not in self.built and self._dropped_at != (ij, here):
                 self._start(ij)
                 due = self._due(x, y)
         if self.proc is not None and (due is True or self.conn.poll() or self.proc.poll() is not None):
@@ -220,6 +222,7 @@ class WorldStreamer:
         if hasattr(self.sim.traffic, "discard_prepared"):
             self.sim.traffic.discard_prepared()
         self.dropped.append(window)
+        self._dropped_at = (window, self.sim.world.frame.chunk_of(x, y))
         log.info("not swapping to the window around chunk %s: the car, now in chunk %s, has left it behind",
                  window, self.sim.world.frame.chunk_of(x, y))
 

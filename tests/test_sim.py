@@ -421,6 +421,15 @@ def test_a_window_the_car_has_left_is_not_swapped_to(motorway_world):
         for _ in range(20):
             sim.step()
         assert sim.streamer.swaps == 0
+        # not built again while the car is in the chunk where it was given up (a car near the
+        # edge, its route ahead in that window, would build and drop it frame after frame)
+        sim.streamer.center = (here[0] - 1, here[1])           # (the car outside the centre chunk)
+        sim.streamer._target = lambda x, y, ij: far
+        sim.step()
+        assert sim.streamer.building is None
+        sim.streamer._dropped_at = (far, (here[0] - 1, here[1]))   # (as if given up elsewhere)
+        sim.step()
+        assert sim.streamer.building == far
     finally:
         sim.teardown()
 
@@ -471,6 +480,11 @@ def test_the_same_seed_repeats_the_run_across_a_window_swap(motorway_world):
     def run(hold: bool):
         cfg = SimConfig(world_dir=str(motorway_world), traffic="light", seed=5, speed_mps=25.0, duration_s=300.0)
         sim = Simulation(cfg).setup()
+        # (tiles that a swap made stale are replaced within a wall-clock budget a frame: the
+        # window around (-1, -1), whose rebuilt tiles are under the car, gave the two runs
+        # positions 1e-13 m apart from 0.7 s after the swap, as the old or the new tile was
+        # under a wheel; the swap's timing is what this checks)
+        sim.physics.load_budget_ms = 1e9
         trace, started, swapped = [], None, None
         try:
             while sim.t < 200.0 and (swapped is None or sim.t < swapped + 10.0):
