@@ -72,7 +72,7 @@ from .driving import (PurePursuit, SpeedController, _drivable_lanes, _resample, 
                       plan_speed, stop_speed)
 from .mirror import LEVEL_M      # (levels more than this apart: a deck and the road under it)
 from .sumo_process import NOT_YET
-from .traffic import NETWORK_READS, _boxes_overlap
+from .traffic import NETWORK_READS, STANDOFF_CREEP_MPS, _boxes_overlap
 from .vehicle import STEER_RATE, WHEELBASE
 
 log = logging.getLogger("cosim.autopilot")
@@ -92,7 +92,6 @@ NEAR_MISS_TTC_S = 1.5
 NEAR_MISS_GAP_M = 2.0
 SENSE_RANGE_M = 80.0       # obstacles on the path are considered up to here
 STANDOFF_S = 20.0          # the car and a vehicle in its sweep both standing this long: a standoff
-STANDOFF_CREEP_MPS = 0.5   # _standoff: slower than this is standing (the car creeps up to what it waits for)
 STANDOFF_GAP_M = 5.0       # _standoff: a vehicle on a lane over the path this near is waited for, whatever binds
 LEVEL_REACH_M = 40.0       # ... looked at for actors this near (in x and y) where the path is up there
 CROSS_LANE_MARGIN_M = 3.5  # a crossing vehicle's road may have a lane nearer than its own

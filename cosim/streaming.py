@@ -127,11 +127,7 @@ class WorldStreamer:
         if self.ready is not None:
             if due is False:
                 return                          # (SUMO goes on loading in its own process)
-            verdict = self._verdict(self.ready[0], x, y)
-            if verdict == "drop":
-                self._drop_ready(x, y)
-            elif verdict == "swap":
-                self._swap_when_ready(block=due is True)
+            self._settle_ready(x, y, due)
             return
         ij = self.sim.world.frame.chunk_of(x, y)
         if self.proc is None and ij != self.center:
@@ -168,11 +164,7 @@ class WorldStreamer:
                     log.info("could not start SUMO ahead on the next network: %s", e)
             self.ready = (window, out, routes)
             if due is not False:                # (due now: in this frame, whenever the build ended)
-                verdict = self._verdict(window, x, y)
-                if verdict == "drop":
-                    self._drop_ready(x, y)
-                elif verdict == "swap":
-                    self._swap_when_ready(block=due is True)
+                self._settle_ready(x, y, due)
 
     def _target(self, x: float, y: float, ij: tuple) -> tuple:
         """The chunk to centre the next window on, for a car in chunk ``ij``: the chunk of its
@@ -212,6 +204,15 @@ class WorldStreamer:
             return "drop"
         return "wait"
 
+    def _settle_ready(self, x: float, y: float, due) -> None:
+        """The ready window, its swap due (or, not repeatable, whenever): swapped to, given up
+        or kept waiting, as :meth:`_verdict` says."""
+        verdict = self._verdict(self.ready[0], x, y)
+        if verdict == "drop":
+            self._drop_ready(x, y)
+        elif verdict == "swap":
+            self._swap_when_ready(block=due is True)
+
     def _drop_ready(self, x: float, y: float) -> None:
         """Give up a built window that the car has left behind (it stays on disk: a later build
         of it reuses it), and SUMO started ahead on its network."""
@@ -224,7 +225,7 @@ class WorldStreamer:
         self.dropped.append(window)
         self._dropped_at = (window, self.sim.world.frame.chunk_of(x, y))
         log.info("not swapping to the window around chunk %s: the car, now in chunk %s, has left it behind",
-                 window, self.sim.world.frame.chunk_of(x, y))
+                 window, self._dropped_at[1])
 
     def _due(self, x: float, y: float):
         """In a repeatable run, whether the swap's time has come (True / False; once come, it

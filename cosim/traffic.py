@@ -73,7 +73,7 @@ TRACI_START_TIMEOUT_S = 120   # seconds a TraCI SUMO has to load its network and
 DEFAULT_CONTEXT_RADIUS = 150.0
 EGO_JOINT_NUDGE_M = 0.3       # a front bumper in the gap at a lane joint is mapped this far on (_across_joint)
 STANDOFF_CHAIN = 2            # release_standoff: standing vehicles between the one taken out and the ego
-STANDOFF_CREEP_MPS = 0.5      # waits_for_ego: a vehicle in the chain slower than this stands
+STANDOFF_CREEP_MPS = 0.5      # standoffs: slower than this stands (the chain to the ego, the car and what it waits for)
 EGO_MATCH_RADIUS_M = 15.0      # the ego is mapped onto a lane within this distance, else off the network
 PERSON_YIELD_RANGE_M = 15.0    # pedestrians this near the ego are checked (see _persons_yield)
 PERSON_YIELD_MARGIN_M = 0.5    # they stop this far outside the ego's footprint
@@ -367,7 +367,7 @@ NETWORK_READS = ("incoming_lanes", "via_lanes", "edge_ends")
 
 def _plan(lane: str, pos: float, rng_state) -> dict:
     """A route plan (``SumoTraffic.plan_route``) before its route, path and goal are known."""
-    return dict(lane=lane, pos=float(pos), goal=None, length=None, eta=None, rng_state=rng_state)
+    return dict(lane=lane, pos=float(pos), goal=None, rng_state=rng_state)
 
 
 # --- the component --------------------------------------------------------------------------
@@ -1748,7 +1748,6 @@ class SumoTraffic(Component):
             if best is None:
                 return dict(out, route=[], path=None)
             route = head + list(best.edges)
-            out.update(length=float(best.length), eta=float(best.travelTime))
         else:
             first = firsts[0]
             if len(firsts) > 1:

@@ -562,7 +562,7 @@ class MainWindow(QMainWindow):
             self.live["route"].setText("arrived at the destination")
         elif f.get("route_left") is not None:
             m, eta = f["route_left"]
-            self.live["route"].setText(f"{m:.0f} m to the destination, ETA {eta:.0f} s")
+            self._update_route_label({"route_length_m": m, "eta_s": eta})
         self.map.set_frame(f)
         if "camera" in f:
             self.camera.set_image(f["camera"])
