@@ -25,6 +25,7 @@ import math
 import numpy as np
 import pybullet as pb
 
+from .physics import static_body
 from .traffic import _boxes_overlap
 
 PARK_Z = -500.0
@@ -113,8 +114,7 @@ class ActorMirror:
             cs_vs = (cs, vs)
             self.shapes[key] = cs_vs
         self.created += 1
-        return pb.createMultiBody(0, cs_vs[0], cs_vs[1], [0, 0, PARK_Z], useMaximalCoordinates=True,
-                                 physicsClientId=c)
+        return static_body(c, cs_vs[0], cs_vs[1], (0, 0, PARK_Z))
 
     def update(self, snap, ego=None) -> dict:
         """Mirror a traffic snapshot (cosim.traffic.ActorsSnapshot). Returns counts.

@@ -13,6 +13,13 @@ PyBullet does not free a mesh's memory when a body is removed, so shapes are poo
 tile's collision and visual shapes are created once per file and reused whenever the tile
 comes back, and heightfield shapes are removed with ``removeCollisionShape``. Memory is
 therefore bounded by the tiles the car has visited, not by how often it streamed them.
+
+Every static body (tiles, scenery, and the mirror's actors: ``static_body``) is put to sleep
+when it is made. PyBullet's step writes a transform-changed notification for every awake
+body, static ones included, and Bullet wakes none of them again (moving one with
+``resetBasePositionAndOrientation`` does not): in Helsinki's world of 220 bodies that was a
+third of the car's substep (``bench/HISTORY.md``, session 38). Rays, contacts with the car and
+rendering are the same for a sleeping static body.
 """
 from __future__ import annotations
 
@@ -87,6 +94,14 @@ def compact_order(xy: np.ndarray, run: int) -> np.ndarray:
         todo.append(idx[cut[m:]])            # (popped after the first half: runs stay in order)
         todo.append(idx[cut[:m]])
     return np.concatenate(out)
+
+
+def static_body(client: int, collision: int, visual: int, position, orientation=(0.0, 0.0, 0.0, 1.0)) -> int:
+    """A static body (mass 0, maximal coordinates), asleep (see the module doc)."""
+    b = pb.createMultiBody(0, collision, visual, list(position), list(orientation), useMaximalCoordinates=True,
+                           physicsClientId=client)
+    pb.changeDynamics(b, -1, activationState=pb.ACTIVATION_STATE_SLEEP, physicsClientId=client)
+    return b
 
 
 def _colliders_mesh(cols, frames) -> tuple[np.ndarray, np.ndarray]:
@@ -378,7 +393,7 @@ class PhysicsWorld:
             ny, nx = g.z.shape
             pos = [g.xmin + (nx - 1) * g.spacing / 2, g.ymin + (ny - 1) * g.spacing / 2, base]
             vis = self._terrain_visual(key, g, pos) if self.visuals else self._invisible()
-            b = pb.createMultiBody(0, sh, vis, pos, useMaximalCoordinates=True, physicsClientId=c)
+            b = static_body(c, sh, vis, pos)
             tb.bodies.append(b)
             tb.kinds.append("terrain")
         tb.load_ms += (time.perf_counter() - t0) * 1000.0
@@ -392,8 +407,7 @@ class PhysicsWorld:
             if npz is not None and npz.exists():
                 for col in self._part_shapes(npz, part_faces):
                     if col is not None:         # (None: the class's file read, a part of its own)
-                        b = pb.createMultiBody(0, col, -1, [0, 0, 0], useMaximalCoordinates=True,
-                                               physicsClientId=c)
+                        b = static_body(c, col, -1, (0, 0, 0))
                         tb.bodies.append(b)
                         tb.kinds.append(kind)
                     tb.load_ms += (time.perf_counter() - t0) * 1000.0
@@ -404,7 +418,7 @@ class PhysicsWorld:
                 col, vis = -1, self._shapes(f, kind, False)[1]      # (drawn whole)
             else:
                 col, vis = self._shapes(f, kind, collide)
-            b = pb.createMultiBody(0, col, vis, [0, 0, 0], useMaximalCoordinates=True, physicsClientId=c)
+            b = static_body(c, col, vis, (0, 0, 0))
             tb.bodies.append(b)
             tb.kinds.append(kind)
             tb.load_ms += (time.perf_counter() - t0) * 1000.0
@@ -619,7 +633,7 @@ class PhysicsWorld:
                 cs = pb.createCollisionShape(pb.GEOM_MESH, vertices=V.tolist(), indices=F.ravel().tolist(),
                                              flags=pb.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=c)
                 self._shape_pool[("scenery-mesh", key, per, n)] = cs
-            body = pb.createMultiBody(0, cs, -1, [ox, oy, 0.0], useMaximalCoordinates=True, physicsClientId=c)
+            body = static_body(c, cs, -1, (ox, oy, 0.0))
             if n < len(runs) - 1:
                 yield [body]
         bodies = [body]
@@ -639,7 +653,7 @@ class PhysicsWorld:
                             meshScales=[[1, 1, 1]] * len(part), visualFramePositions=[fr[0] for fr in frames],
                             visualFrameOrientations=[fr[1] for fr in frames], physicsClientId=c)
                         self._shape_pool[("scenery-visual", key, kind, n0)] = vs
-                    b = pb.createMultiBody(0, -1, vs, [ox, oy, 0.0], useMaximalCoordinates=True, physicsClientId=c)
+                    b = static_body(c, -1, vs, (ox, oy, 0.0))
                     pb.changeVisualShape(b, -1, rgbaColor=PREFAB_COLOURS.get(kind, (0.6, 0.6, 0.6, 1)),
                                          physicsClientId=c)
                     bodies.append(b)
@@ -653,7 +667,7 @@ class PhysicsWorld:
             f = self.world.chunks[ij]["files"].get("scenery_obj")
             if f:
                 _, vis = self._shapes(self.world.file(ij, f), "areas", False)
-                body = pb.createMultiBody(0, -1, vis, [0, 0, 0], physicsClientId=c)
+                body = static_body(c, -1, vis, (0, 0, 0))
         if n <= 0 and body is not None:
             pb.removeBody(body, physicsClientId=c)
             body = None

@@ -5,8 +5,9 @@ with the car) over ``±fov/2`` from the middle of the front bumper at ``height``
 road, ``range_m`` long, in one ``rayTestBatch``. The ego's own chassis is excluded through
 its collision group (``cosim.vehicle.CHASSIS_COLLISION_GROUP``; the wheel links collide with
 nothing). A :class:`LidarScan` gives per ray the distance (``range_m`` when nothing was hit),
-the body id hit (-1 for none), the hit point, the surface normal, and the height of the hit
-above the surface under it (a second batch of short vertical rays, one per hit).
+the body id hit (-1 for none), the hit point, the surface normal, and on demand the height of
+a hit above the surface under it (``LidarScan.heights``: a second batch of short vertical rays,
+cast only for the rays asked about).
 
 :func:`corridor_obstacle` keeps the hits that lie in the path corridor ahead (within half the
 car's width plus a margin of the path's centreline) and are obstacles rather than the road
@@ -26,16 +27,22 @@ import pybullet as pb
 from .vehicle import CHASSIS_COLLISION_GROUP, LENGTH, WIDTH
 
 
-@dataclass
 class LidarScan:
-    angles: np.ndarray       # rad, in the car frame (0 = straight ahead, + = left)
-    distance: np.ndarray     # m from the origin (range when nothing was hit)
-    body: np.ndarray         # body id hit, -1 none
-    point: np.ndarray        # (n, 3) world hit points (ray ends for misses)
-    normal: np.ndarray       # (n, 3) world surface normals (0 for misses)
-    origin: np.ndarray       # (3,) the sensor's position
-    range_m: float
-    height: np.ndarray = None  # (n,) m of each hit point above the surface under it (nan: no hit)
+    """One scan (see the module doc). The height of a hit above the surface under it takes a
+    second batch of vertical rays: cast on first use, only for the rays asked about
+    (:meth:`heights`; ``corridor_obstacle`` asks for the few hits in the corridor)."""
+
+    def __init__(self, angles, distance, body, point, normal, origin, range_m, dirs=None, lidar=None):
+        self.angles = angles            # rad, in the car frame (0 = straight ahead, + = left)
+        self.distance = distance        # m from the origin (range when nothing was hit)
+        self.body = body                # body id hit, -1 none
+        self.point = point              # (n, 3) world hit points (ray ends for misses)
+        self.normal = normal            # (n, 3) world surface normals (0 for misses)
+        self.origin = origin            # (3,) the sensor's position
+        self.range_m = range_m
+        self._dirs, self._lidar = dirs, lidar
+        self._height = np.full(len(distance), np.nan)
+        self._asked = np.zeros(len(distance), dtype=bool)
 
     @property
     def hit(self) -> np.ndarray:
@@ -43,6 +50,22 @@ class LidarScan:
 
     def nearest(self) -> float:
         return float(self.distance.min()) if len(self.distance) else self.range_m
+
+    def heights(self, idx) -> np.ndarray:
+        """Heights (m) of the hits of rays ``idx`` above the surface under them (nan: no hit)."""
+        idx = np.asarray(idx, dtype=int)
+        new = idx[~self._asked[idx] & (self.body[idx] >= 0)]
+        if len(new) and self._lidar is not None:
+            new = np.unique(new)
+            self._height[new] = self._lidar.heights_under(self.point[new], self._dirs[new])
+        self._asked[idx] = True
+        return self._height[idx]
+
+    @property
+    def height(self) -> np.ndarray:
+        """(n,) m of each hit point above the surface under it (nan: no hit)."""
+        self.heights(np.arange(len(self.distance)))
+        return self._height
 
 
 class Lidar:
@@ -78,18 +101,17 @@ class Lidar:
         frac = np.where(body >= 0, frac, 1.0)
         point = np.array([r[3] if r[0] >= 0 else e for r, e in zip(res, ends.tolist())], dtype=float)
         normal = np.array([r[4] if r[0] >= 0 else (0.0, 0.0, 0.0) for r in res], dtype=float)
-        # height of each hit above the surface under it: a second, vertical ray from just in
-        # front of the hit (the road ahead rising into the fan is not an obstacle; a car is)
-        height = np.full(self.n, np.nan)
-        hit = np.nonzero(body >= 0)[0]
-        if len(hit):
-            top = point[hit] - 0.05 * dirs[hit] + np.array([0.0, 0.0, 0.05])
-            bottom = top - np.array([0.0, 0.0, 3.0])
-            down = pb.rayTestBatch(top.tolist(), bottom.tolist(), numThreads=1, collisionFilterMask=self.mask,
-                                   physicsClientId=self.client)
-            for k, r in zip(hit, down):
-                height[k] = (point[k, 2] - r[3][2]) if r[0] >= 0 else 3.0
-        return LidarScan(self.angles, frac * self.range_m, body, point, normal, origin, self.range_m, height)
+        return LidarScan(self.angles, frac * self.range_m, body, point, normal, origin, self.range_m, dirs, self)
+
+    def heights_under(self, points: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """Heights of hit ``points`` (rays along ``dirs``) above the surface under them: a
+        vertical ray 3 m down from just in front of each (the road ahead rising into the fan is
+        not an obstacle; a car is); 3.0 where it meets nothing."""
+        top = points - 0.05 * dirs + np.array([0.0, 0.0, 0.05])
+        bottom = top - np.array([0.0, 0.0, 3.0])
+        down = pb.rayTestBatch(top.tolist(), bottom.tolist(), numThreads=1, collisionFilterMask=self.mask,
+                               physicsClientId=self.client)
+        return np.array([(p[2] - r[3][2]) if r[0] >= 0 else 3.0 for p, r in zip(points.tolist(), down)])
 
     def scan_vehicle(self, state) -> LidarScan:
         return self.scan(state.x, state.y, state.z, state.roll, state.pitch, state.yaw)
@@ -115,8 +137,6 @@ def corridor_obstacle(scan: LidarScan, path, s_here: float, half_width: float = 
     below ``ground_nz``) and it stands at least ``min_height`` above the surface under it (a
     ray meeting a rising street, a kerb or a seam of the road mesh is not an obstacle)."""
     ok = scan.hit & (np.abs(scan.normal[:, 2]) < ground_nz)
-    if scan.height is not None:
-        ok &= ~(scan.height < min_height)
     if ignore_bodies:
         ok &= ~np.isin(scan.body, list(ignore_bodies))
     idx = np.nonzero(ok)[0]
@@ -126,6 +146,11 @@ def corridor_obstacle(scan: LidarScan, path, s_here: float, half_width: float = 
     good = np.isfinite(s) & (np.abs(off) <= half_width) & (s > s_here + front - 0.5)
     # a hit projected onto the end of the searched part is not on the path
     good &= s < min(path.length, s_here + scan.range_m + 5.0) - 0.25
+    if not good.any():
+        return None
+    # (the heights of these few only: each takes a ray cast)
+    g = np.flatnonzero(good)
+    good[g[scan.heights(idx[g]) < min_height]] = False
     if not good.any():
         return None
     j = int(np.argmin(np.where(good, s, np.inf)))
