@@ -920,7 +920,7 @@ class Autopilot:
         if not ok.any():
             return None
         near, s, off = near[ok], s[ok], off[ok]
-        idx = np.clip(np.searchsorted(path.s, s, side="right") - 1, 0, len(path.s) - 1)
+        idx = np.minimum(np.maximum(path.s.searchsorted(s, side="right") - 1, 0), len(path.s) - 1)
         dyaw = actors.yaw[near] - path.heading[idx]
         cos_d, sin_d = np.cos(dyaw), np.sin(dyaw)
         c, sn = np.abs(cos_d), np.abs(sin_d)

@@ -91,10 +91,13 @@ class World:
         heightfield; NaN outside the built world."""
         x = np.atleast_1d(np.asarray(x, dtype=float))
         y = np.atleast_1d(np.asarray(y, dtype=float))
-        out = np.full(x.shape, np.nan)
         s = self.chunk_size
         ci = np.floor(x / s + 0.5).astype(int)
         cj = np.floor(y / s + 0.5).astype(int)
+        if len(x) and ci.min() == ci.max() and cj.min() == cj.max():    # all in one chunk (the usual case)
+            g = self.grid((int(ci[0]), int(cj[0])))
+            return g.sample_tri(x, y) if g is not None else np.full(x.shape, np.nan)
+        out = np.full(x.shape, np.nan)
         for ij in set(zip(ci.tolist(), cj.tolist())):
             g = self.grid(ij)
             if g is None:

@@ -64,8 +64,8 @@ class TerrainGrid:
         x = np.asarray(x, dtype=float)
         y = np.asarray(y, dtype=float)
         ny, nx = self.z.shape
-        fx = np.clip((x - self.xmin) / self.spacing, 0.0, nx - 1.000001)
-        fy = np.clip((y - self.ymin) / self.spacing, 0.0, ny - 1.000001)
+        fx = np.minimum(np.maximum((x - self.xmin) / self.spacing, 0.0), nx - 1.000001)  # (np.clip, without its
+        fy = np.minimum(np.maximum((y - self.ymin) / self.spacing, 0.0), ny - 1.000001)  # wrapper's 3 us)
         c = np.floor(fx).astype(np.int64)
         r = np.floor(fy).astype(np.int64)
         return r, c, fx - c, fy - r
