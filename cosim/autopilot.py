@@ -1181,9 +1181,12 @@ class Autopilot:
         P, arc = shape
         if not len(P):
             return None
-        s, off = path.project_many(P[:, 0], P[:, 1], s_here - 5.0, s1)
         W, L = float(actors.width[i]), float(actors.length[i])
-        hit = np.isfinite(s) & (np.abs(off) < 0.5 * (self.width + W) + LANE_CONFLICT_MARGIN_M) & (s < s1 - 1.0)
+        reach = 0.5 * (self.width + W) + LANE_CONFLICT_MARGIN_M
+        if not path.comes_within(lane, P, s_here - 5.0, s1, reach):
+            return None         # (the usual answer, from distances kept per lane: see comes_within)
+        s, off = path.project_many(P[:, 0], P[:, 1], s_here - 5.0, s1)
+        hit = np.isfinite(s) & (np.abs(off) < reach) & (s < s1 - 1.0)
         if not hit.any():
             return None
         a0, a1, p0, p1 = float(arc[hit].min()), float(arc[hit].max()), float(s[hit].min()), float(s[hit].max())

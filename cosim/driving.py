@@ -1040,6 +1040,7 @@ class LanePath:
         self.last_edge_start = int(new_index[last_start])  # index where the last edge begins
 
     def _set_geometry(self, xy: np.ndarray, lane_of: list, sim, limits: dict | None = None):
+        self._seg_d2 = {}               # comes_within's distances, per key
         keep = np.ones(len(xy), dtype=bool)
         keep[1:] = np.hypot(*np.diff(xy, axis=0).T) > 1e-3
         self.xy = xy[keep]
@@ -1375,6 +1376,30 @@ class LanePath:
         if self._held is not None:
             off = off - self.held_lat(i0 + j)
         return s, off
+
+    def comes_within(self, key, P: np.ndarray, s0: float, s1: float, reach: float) -> bool:
+        """Does any of the points ``P`` (n, 2) come within ``reach`` of the part of the path
+        between arc lengths s0 and s1? Exactly when ``project_many`` would give one of them an
+        offset under ``reach`` (outside a held lane change: see ``held_lat``). The points'
+        nearest distance to each segment of the whole path is computed once per ``key`` and
+        points array, so that a lane checked frame after frame costs a slice. While
+        a lane change is held back, True (offsets are then from the held line)."""
+        if self._held is not None:
+            return True
+        got = self._seg_d2.get(key)
+        if got is not None and got[0] is P:
+            d2 = got[1]
+        else:
+            A = self.xy[:-1]
+            Pf = np.asarray(P, dtype=float)
+            _, _, _, cx, cy, _ = _onto_segments(A, self.xy[1:] - A, Pf[:, 0][:, None], Pf[:, 1][:, None])
+            d2 = (cx ** 2 + cy ** 2).min(axis=0) if len(Pf) else np.full(len(A), np.inf)
+            self._seg_d2[key] = (P, d2)       # (for these very points: another array is measured anew)
+        i0 = max(0, int(self.s.searchsorted(s0)) - 1)
+        i1 = min(len(self.xy), int(self.s.searchsorted(s1, side="right")) + 1)
+        if i1 - i0 < 2:
+            return False
+        return bool(math.sqrt(float(d2[i0:i1 - 1].min())) < reach)
 
     def index_at(self, s: float) -> int:
         return min(max(int(self.s.searchsorted(s, side="right")) - 1, 0), len(self.s) - 1)
