@@ -3,8 +3,9 @@
 Each vehicle or person near the ego becomes a static (mass 0) box of the actor's length,
 width and height, moved every SUMO step with ``resetBasePositionAndOrientation``: centre from
 SUMO's front bumper (done in ``cosim.traffic``), yaw converted from SUMO's heading, z on the
-world's ground and pitch from the ground's slope along the heading. Static bodies cost the
-physics step almost nothing (no dynamics; static-static pairs are not tested), so the ego
+world's ground and pitch from the ground's slope along the heading. Static bodies, asleep
+(``cosim.physics.static_body``), cost the physics step almost nothing (no dynamics, no
+notification; static-static pairs are not tested), so the ego
 meets real obstacles while the step stays cheap, as SMARTS does with its kinematic traffic.
 
 A long vehicle (a bus, a truck: longer than LONG_M) is a chain of boxes of at most SEGMENT_M

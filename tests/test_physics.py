@@ -327,3 +327,54 @@ def test_a_classs_parts_are_neighbourhoods_of_the_tile(monaco_world):
         assert checked >= 5 and scenery >= 1
     finally:
         pw.teardown()
+
+
+def test_static_bodies_are_asleep_and_still_met_where_they_are_moved():
+    """Static bodies are made asleep (``static_body``: PyBullet's step writes a notification
+    for every awake body). A sleeping body that the mirror moves must still be where rays,
+    the car's collisions and the camera find it, at once and after steps."""
+    import ast
+    from pathlib import Path
+
+    from cosim.physics import static_body
+
+    c = pb.connect(pb.DIRECT)
+    try:
+        cs = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[1, 1, 1], physicsClientId=c)
+        vs = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[1, 1, 1], rgbaColor=[1, 0, 0, 1], physicsClientId=c)
+        b = static_body(c, cs, vs, (0.0, 0.0, 0.0))
+        ball = pb.createMultiBody(1.0, pb.createCollisionShape(pb.GEOM_SPHERE, radius=0.5, physicsClientId=c),
+                                  -1, [6.0, 0.0, 3.0], physicsClientId=c)
+        pb.setGravity(0, 0, -9.81, physicsClientId=c)
+        view = pb.computeViewMatrix([0, -15, 3], [0, 0, 0], [0, 0, 1])
+        proj = pb.computeProjectionMatrixFOV(60, 1, 0.1, 100)
+
+        def red_columns():
+            rgb = np.reshape(pb.getCameraImage(100, 100, view, proj, physicsClientId=c)[2], (100, 100, 4))
+            cols = np.flatnonzero(((rgb[:, :, 0] > 200) & (rgb[:, :, 1] < 50)).any(axis=0))
+            return float(cols.mean())
+
+        def ray_hits(x):
+            return pb.rayTest([x, -5, 0], [x, 5, 0], physicsClientId=c)[0][0] == b
+
+        before = red_columns()
+        for _ in range(5):
+            pb.stepSimulation(physicsClientId=c)
+        pb.resetBasePositionAndOrientation(b, [6.0, 0.0, 0.0], [0, 0, 0, 1], physicsClientId=c)
+        assert ray_hits(6.0) and not ray_hits(0.0)          # at once: the broadphase moved it
+        for _ in range(400):
+            pb.stepSimulation(physicsClientId=c)
+        assert ray_hits(6.0) and not ray_hits(0.0)
+        assert red_columns() > before + 15                  # drawn where it is now
+        # the falling ball lands on it (a sleeping static body still collides)
+        assert 1.3 < pb.getBasePositionAndOrientation(ball, physicsClientId=c)[0][2] < 1.6
+    finally:
+        pb.disconnect(c)
+    # every body the co-simulation makes without mass is made by static_body
+    for f in sorted((Path(__file__).resolve().parents[1] / "cosim").glob("*.py")):
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "createMultiBody":
+                assert f.name == "physics.py" and node.args and getattr(node.args[0], "value", None) == 0, \
+                    f"{f.name}:{node.lineno}"
+    src = (Path(__file__).resolve().parents[1] / "cosim" / "physics.py").read_text()
+    assert src.count("createMultiBody(") == 1 and "def static_body" in src
