@@ -407,7 +407,7 @@ class PhysicsWorld:
             if npz is not None and npz.exists():
                 for col in self._part_shapes(npz, part_faces):
                     if col is not None:         # (None: the class's file read, a part of its own)
-                        b = static_body(c, col, -1, (0, 0, 0))
+                        b = static_body(c, col, self._unseen(), (0, 0, 0))
                         tb.bodies.append(b)
                         tb.kinds.append(kind)
                     tb.load_ms += (time.perf_counter() - t0) * 1000.0
@@ -472,6 +472,14 @@ class PhysicsWorld:
         self.unloads += 1
 
     # --- shapes -------------------------------------------------------------------------
+    def _unseen(self) -> int:
+        """The visual shape of a body that only collides (a mesh class's part, the scenery's
+        colliders; they are drawn by their own visual bodies): none, except in PyBullet's
+        window, which draws a body without one as its collision shape in a colour of its own,
+        over the road's own mesh (red and blue roads and fronts that flickered). In DIRECT a
+        visual shape would cost 0.5 ms a body, and TinyRenderer does not draw such bodies."""
+        return self._invisible() if self.gui else -1
+
     def _invisible(self) -> int:
         """A visual shape nobody sees, for a heightfield body without visuals: given none,
         PyBullet makes the renderer's mesh of the heightfield itself, which took 1.6 of the
@@ -633,7 +641,7 @@ class PhysicsWorld:
                 cs = pb.createCollisionShape(pb.GEOM_MESH, vertices=V.tolist(), indices=F.ravel().tolist(),
                                              flags=pb.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=c)
                 self._shape_pool[("scenery-mesh", key, per, n)] = cs
-            body = static_body(c, cs, -1, (ox, oy, 0.0))
+            body = static_body(c, cs, self._unseen(), (ox, oy, 0.0))
             if n < len(runs) - 1:
                 yield [body]
         bodies = [body]

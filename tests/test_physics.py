@@ -378,3 +378,33 @@ def test_static_bodies_are_asleep_and_still_met_where_they_are_moved():
                     f"{f.name}:{node.lineno}"
     src = (Path(__file__).resolve().parents[1] / "cosim" / "physics.py").read_text()
     assert src.count("createMultiBody(") == 1 and "def static_body" in src
+
+
+def test_bodies_that_only_collide_are_drawn_as_nothing_in_pybullets_window(monaco_world):
+    """PyBullet's window draws a body without a visual shape as its collision shape, in a
+    colour of its own: the road's parts were drawn red and blue over the road's own mesh. In
+    the window they get an invisible shape; headless none is made for them (a visual shape
+    would cost 0.5 ms a body). The window's choice is tested here without a display (``gui`` set after a
+    DIRECT setup). The car's link is drawn in its last visual's colour there: the paint."""
+    import xml.etree.ElementTree as ET
+
+    from models import car_urdf_path
+
+    for gui in (False, True):
+        pw = PhysicsWorld(monaco_world, visuals=False).setup()
+        pw.gui = gui
+        try:
+            pw.update(0.0, 0.0, 150.0, budget_ms=1e9)
+            parts = [b for tb in pw.tiles.values() for b, k in zip(tb.bodies, tb.kinds) if k in COLLIDE]
+            scenery = [b for tb in pw.tiles.values() for b in tb.bodies[len(tb.kinds):]]   # (their colliders)
+            assert len(parts) > 20 and scenery
+            for b in parts + scenery:
+                shapes = pb.getVisualShapeData(b, physicsClientId=pw.client)
+                if gui:
+                    assert len(shapes) == 1 and shapes[0][2] == pb.GEOM_SPHERE and shapes[0][7][3] == 0.0
+                else:                   # (PyBullet's own stand-in, made from the collision shape)
+                    assert all(d[2] != pb.GEOM_SPHERE for d in shapes)
+        finally:
+            pw.teardown()
+    base = ET.parse(car_urdf_path()).getroot().find("link[@name='base_link']")
+    assert base.findall("visual")[-1].find("material").get("name") == "paint"
