@@ -477,7 +477,7 @@ class PhysicsWorld:
         colliders; they are drawn by their own visual bodies): none, except in PyBullet's
         window, which draws a body without one as its collision shape in a colour of its own,
         over the road's own mesh (red and blue roads and fronts that flickered). In DIRECT a
-        visual shape would cost 0.5 ms a body, and TinyRenderer does not draw such bodies."""
+        visual shape would cost 0.5 ms a body, and TinyRenderer draws no mesh that only collides."""
         return self._invisible() if self.gui else -1
 
     def _invisible(self) -> int:

@@ -30,7 +30,8 @@ from .vehicle import CHASSIS_COLLISION_GROUP, LENGTH, WIDTH
 class LidarScan:
     """One scan (see the module doc). The height of a hit above the surface under it takes a
     second batch of vertical rays: cast on first use, only for the rays asked about
-    (:meth:`heights`; ``corridor_obstacle`` asks for the few hits in the corridor)."""
+    (:meth:`heights`; ``corridor_obstacle`` asks for the few hits in the corridor). Ask in the
+    frame of the scan: the rays are cast into the world as it is when asked."""
 
     def __init__(self, angles, distance, body, point, normal, origin, range_m, dirs=None, lidar=None):
         self.angles = angles            # rad, in the car frame (0 = straight ahead, + = left)
