@@ -211,6 +211,9 @@ class PhysicsWorld:
         if self.gui:
             pb.configureDebugVisualizer(pb.COV_ENABLE_GUI, 0, physicsClientId=c)
             pb.configureDebugVisualizer(pb.COV_ENABLE_SHADOWS, 1, physicsClientId=c)
+            # the window's own keys off: W drew the world as wireframe, A its bounding boxes,
+            # S, D and the others toggled what it draws; WASD drive the car (cosim.keyboard)
+            pb.configureDebugVisualizer(pb.COV_ENABLE_KEYBOARD_SHORTCUTS, 0, physicsClientId=c)
         self._load_prefabs()
         return self
 
