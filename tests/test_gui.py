@@ -406,6 +406,47 @@ def test_cosim_gui_without_a_display_is_a_clear_error(tmp_path):
                         "(QT_QPA_PLATFORM=offscreen runs it without one)")
 
 
+def test_qt_x11_plugin_without_its_libraries_is_a_clear_error(tmp_path):
+    """Qt's X11 platform plugin, loaded without a system library it needs (``libxcb-icccm``
+    and others are not on a minimal system), aborts the process with Qt's lines about
+    reinstalling the application. ``xcb_problem`` agrees with the dynamic loader (``ldd``),
+    and ``cosim gui`` with an X server answering says in one line what is missing."""
+    import socket
+
+    from PyQt5.QtCore import QLibraryInfo
+
+    from ui.app import XCB_PACKAGES, xcb_problem
+
+    plugin = Path(QLibraryInfo.location(QLibraryInfo.PluginsPath)) / "platforms" / "libqxcb.so"
+    assert plugin.exists()
+    ldd = subprocess.run(["ldd", str(plugin)], capture_output=True, text=True, timeout=60).stdout
+    missing = {ln.split()[0] for ln in ldd.splitlines() if "not found" in ln}
+    why = xcb_problem()
+    if not missing:
+        assert why is None
+        return
+    assert why is not None and "\n" not in why and XCB_PACKAGES in why
+    assert any(f"{lib} is missing" in why for lib in missing), why
+    # an X server's socket that takes connections (a display here), then the launcher
+    x11 = Path("/tmp/.X11-unix")
+    x11.mkdir(exist_ok=True)
+    n = next(k for k in range(90, 200) if not (x11 / f"X{k}").exists())
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    srv.bind(str(x11 / f"X{n}"))
+    srv.listen(8)
+    try:
+        env = {k: v for k, v in os.environ.items() if k != "QT_QPA_PLATFORM"}
+        env["DISPLAY"] = f":{n}"
+        r = subprocess.run([sys.executable, "-m", "cosim", "gui", "--preset", "kouvola", "--no-realtime"],
+                           capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
+    finally:
+        srv.close()
+        (x11 / f"X{n}").unlink()
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr[-2000:]
+    assert lines[0] == f"error: {why}"
+
+
 def test_pybullet_window_checkbox_needs_a_display(qtbot, worlds, monkeypatch):
     monkeypatch.delenv("DISPLAY", raising=False)
     w = make_window(qtbot, worlds)

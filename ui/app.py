@@ -730,16 +730,47 @@ class MainWindow(QMainWindow):
         self._shutdown_threads(timeout_ms)
 
 
+#: Debian / Ubuntu packages of the X11 libraries Qt's xcb platform plugin needs beyond PyQt5's wheel
+XCB_PACKAGES = ("libxcb-icccm4 libxcb-keysyms1 libxcb-xinerama0 libxcb-image0 libxcb-render-util0 "
+                "libxcb-randr0 libxcb-shape0 libxkbcommon-x11-0")
+
+
+def xcb_problem() -> str | None:
+    """Why Qt's X11 platform plugin (``libqxcb.so``, PyQt5's wheel) cannot load here, in a
+    line, or None. Loaded without a system library it needs (``libxcb-icccm.so.4`` and others,
+    not on a minimal system), Qt aborts the process with several lines about reinstalling
+    the application; the plugin is loaded here first (the dynamic loader names what is
+    missing)."""
+    import ctypes
+
+    from PyQt5.QtCore import QLibraryInfo
+
+    plugin = Path(QLibraryInfo.location(QLibraryInfo.PluginsPath)) / "platforms" / "libqxcb.so"
+    if not plugin.exists():
+        return None                     # (Qt lists the platforms it has)
+    try:
+        ctypes.CDLL(str(plugin))
+    except OSError as e:
+        what = str(e).split(":")[0].strip() if ".so" in str(e).split(":")[0] else str(e)
+        return (f"Qt's X11 platform plugin cannot load: {what} is missing (on Debian or Ubuntu: "
+                f"apt install {XCB_PACKAGES})")
+    return None
+
+
 def launch(preset: str | None = None, worlds: str | None = None, realtime: bool = True) -> int:
     """Open the launcher; returns the Qt event loop's exit status. Qt's default platform on
-    Linux (xcb) aborts the process without an X server: that is a one-line SimulationError
-    here, unless QT_QPA_PLATFORM names another platform (``offscreen`` for screenshots)."""
+    Linux (xcb) aborts the process without an X server, or without the X11 libraries its
+    plugin needs: each is a one-line SimulationError here, unless QT_QPA_PLATFORM names
+    another platform (``offscreen`` for screenshots)."""
     platform = os.environ.get("QT_QPA_PLATFORM", "")
     if not QApplication.instance() and platform in ("", "xcb") and sys.platform.startswith("linux"):
         why = display_problem()
         if why:
             raise SimulationError(f"the launcher needs a display: {why} (QT_QPA_PLATFORM=offscreen runs it "
                                   "without one)")
+        why = xcb_problem()
+        if why:
+            raise SimulationError(why)
     app = QApplication.instance() or QApplication(sys.argv[:1])
     w = MainWindow(out_root=worlds, realtime=realtime, preset=preset)
     app.aboutToQuit.connect(w._shutdown_threads)
