@@ -726,7 +726,8 @@ def drawn():
     img = screen()
     sky = img[5, img.shape[1] // 4]
     lower = img[img.shape[0] // 2 + 20:img.shape[0] - 20, 20:img.shape[1] // 2]
-    return float((np.abs(lower - sky).sum(axis=2) > 24).mean())
+    vivid = img.max(axis=2) - img.min(axis=2) > 120     # (none of the world's own colours is)
+    return float((np.abs(lower - sky).sum(axis=2) > 24).mean()), float(vivid.mean())
 
 
 pw = PhysicsWorld(World(world), gui=True).setup()
@@ -739,15 +740,15 @@ subprocess.run(["xdotool", "windowactivate", "--sync", win[0]], capture_output=T
 for key in ("w", "a", "s", "d"):
     subprocess.run(["xdotool", "key", key])
 after = drawn()
-print(f"drawn {before:.3f} {after:.3f}")
+print(f"drawn {before[0]:.3f} {after[0]:.3f} vivid {before[1]:.4f}")
 pb.disconnect(c)
 """
 
 
 def test_pybullet_window_keeps_drawing_the_world_when_wasd_are_pressed(tmp_path, kouvola_world):
-    """In PyBullet's own window (``cosim run --gui``), W A S D drive the car. The window's own
-    keyboard shortcuts are off: W switched the world to wireframe (the ground no longer
-    drawn). Needs Xvfb and xdotool (`.ci/run` installs them; elsewhere this skips, saying so):
+    """In PyBullet's own window (``cosim run --gui``), the world is drawn in its own colours,
+    and W A S D drive the car. The window's own keyboard shortcuts are off: W switched the
+    world to wireframe (the ground no longer drawn). Needs Xvfb and xdotool (`.ci/run` installs them; elsewhere this skips, saying so):
     the window is drawn on a virtual screen and the keys are typed into it."""
     import shutil
     import time
@@ -774,6 +775,9 @@ def test_pybullet_window_keeps_drawing_the_world_when_wasd_are_pressed(tmp_path,
         xvfb.wait(timeout=30)
     got = [ln for ln in r.stdout.splitlines() if ln.startswith("drawn ")]
     assert r.returncode == 0 and got, (r.stdout + r.stderr)[-3000:]
-    before, after = map(float, got[0].split()[1:])
+    before, after, vivid = (float(v) for v in got[0].split()[1:] if v != "vivid")
     assert before > 0.9, before             # the ground fills the lower half
     assert after > 0.9, after               # and still does after W A S D
+    # and in its own colours: the window drew the collision parts of the roads and buildings
+    # in vivid colours of its own over their meshes, unless they have an invisible shape
+    assert vivid < 0.002, vivid
