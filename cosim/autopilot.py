@@ -676,17 +676,14 @@ class Autopilot:
         cands = []
         # 1. lidar
         self.scan = None
-        body_actor = {}
-        mirror = getattr(self.sim, "mirror", None)
-        if mirror is not None:
-            body_actor = mirror.body_actors()
         if self.lidar is not None:
             from .sensors import corridor_obstacle
 
             self.scan = scan = self.lidar.scan_vehicle(st)
             hit = corridor_obstacle(scan, path, s_here, front=self.front)
             if hit is not None:
-                aid = body_actor.get(hit.body)
+                mirror = getattr(self.sim, "mirror", None)
+                aid = mirror.body_actors().get(hit.body) if mirror is not None else None
                 if aid is not None and actors is not None and len(actors):
                     try:
                         i = actors.index(aid)

@@ -199,8 +199,8 @@ class ActorMirror:
                 near = ((x - ego[0]) ** 2 + (y - ego[1]) ** 2 <= reach * reach).tolist()
             else:
                 near = [False] * n
-            xs, ys, zs, yaws = x.tolist(), y.tolist(), z.tolist(), yaw.tolist()
-            ids = snap.ids
+            xs, ys, zs, yaws, cps = x.tolist(), y.tolist(), z.tolist(), yaw.tolist(), cosp.tolist()
+            ids = snap.ids.tolist()
             for k in range(n):
                 aid = ids[k]
                 key = keys.get(aid)
@@ -227,7 +227,7 @@ class ActorMirror:
                     if last is not None:
                         self.held_at[aid] = (last[0], last[1])
                     continue
-                pos = (xs[k], ys[k], zs[k] + key[3] * 0.5 * cosp[k])
+                pos = (xs[k], ys[k], zs[k] + key[3] * 0.5 * cps[k])
                 if self._last.get(cur[0]) == pos:      # standing still: nothing to move
                     continue
                 self._last[cur[0]] = pos
