@@ -1354,14 +1354,19 @@ class LanePath:
             off -= self.held_lat(a)
         return (a, float(self.s[a] + t[j] * math.sqrt(float(L2[j]))), off)
 
+    def _part(self, s0: float, s1: float) -> tuple[int, int]:
+        """The points i0 .. i1 - 1 whose segments cover arc lengths s0 to s1 (project_many's,
+        comes_within's)."""
+        return (max(0, int(self.s.searchsorted(s0)) - 1),
+                min(len(self.xy), int(self.s.searchsorted(s1, side="right")) + 1))
+
     def project_many(self, x: np.ndarray, y: np.ndarray, s0: float, s1: float) -> tuple[np.ndarray, np.ndarray]:
         """Arc length and signed lateral offset (left +) of many points, each projected onto the
         part of the path between arc lengths s0 and s1 (vectorised). Points that project onto
         that part's ends get the end's s (and their true distance as offset)."""
         x = np.asarray(x, dtype=float)
         y = np.asarray(y, dtype=float)
-        i0 = max(0, int(self.s.searchsorted(s0)) - 1)
-        i1 = min(len(self.xy), int(self.s.searchsorted(s1, side="right")) + 1)
+        i0, i1 = self._part(s0, s1)
         if len(x) == 0 or i1 - i0 < 2:
             return np.full(len(x), np.nan), np.full(len(x), np.inf)
         P = self.xy[i0:i1 - 1]
@@ -1395,8 +1400,7 @@ class LanePath:
             _, _, _, cx, cy, _ = _onto_segments(A, self.xy[1:] - A, Pf[:, 0][:, None], Pf[:, 1][:, None])
             d2 = (cx ** 2 + cy ** 2).min(axis=0) if len(Pf) else np.full(len(A), np.inf)
             self._seg_d2[key] = (P, d2)       # (for these very points: another array is measured anew)
-        i0 = max(0, int(self.s.searchsorted(s0)) - 1)
-        i1 = min(len(self.xy), int(self.s.searchsorted(s1, side="right")) + 1)
+        i0, i1 = self._part(s0, s1)
         if i1 - i0 < 2:
             return False
         return bool(math.sqrt(float(d2[i0:i1 - 1].min())) < reach)

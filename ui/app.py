@@ -751,7 +751,8 @@ def xcb_problem() -> str | None:
     try:
         ctypes.CDLL(str(plugin))
     except OSError as e:
-        what = str(e).split(":")[0].strip() if ".so" in str(e).split(":")[0] else str(e)
+        first = str(e).split(":")[0].strip()        # ("libxcb-icccm.so.4: cannot open shared object file")
+        what = first if ".so" in first else str(e)
         return (f"Qt's X11 platform plugin cannot load: {what} is missing (on Debian or Ubuntu: "
                 f"apt install {XCB_PACKAGES})")
     return None
