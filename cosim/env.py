@@ -49,9 +49,10 @@ Reward (per step; weights in ``DrivingEnv.REWARD``)
 
 Episodes
     ``terminated``: arrived, collision or off road. ``truncated``: ``max_steps`` (default
-    ``config.duration_s / step``). ``reset()`` with the same seed (or none) puts the car back at
-    the start in the running simulation (fast: SUMO's traffic goes on); a new seed restarts
-    the simulation (new traffic). ``info`` carries ``autopilot_action`` (what the autopilot
+    ``config.duration_s / step``). ``reset(seed=N)`` starts the simulation afresh with that
+    seed: the same seed gives the same episode, step for step, for the same actions (as
+    Gymnasium's ``check_env`` asks). ``reset()`` without a seed puts the car back at the start
+    in the running simulation (fast: SUMO's traffic goes on from where it was). ``info`` carries ``autopilot_action`` (what the autopilot
     would do now: for imitation or as a baseline), the ego state, the step's reward terms and
     the simulation's summary at the end.
 """
@@ -136,7 +137,10 @@ class DrivingEnv(_Base):
                 super().reset(seed=seed)
             except TypeError:
                 pass
-        if self.sim is not None and (seed is None or seed == self._seed) and self._soft_reset():
+        # a seed restarts the simulation, so that the same seed gives the same episode (as
+        # Gymnasium's API asks, and its check_env tests); without one, the car is put back
+        # at the start of the running simulation (fast: SUMO's traffic goes on)
+        if self.sim is not None and seed is None and self._soft_reset():
             pass
         else:
             self.close()
