@@ -1029,8 +1029,8 @@ class LanePath:
         self._set_changes(change_specs)
         # stop lines and crossings
         self.stops: list[StopLine] = []
-        for idx, (ln, to_lane, via, st), internal in stop_marks:
-            j = int(new_index[idx])
+        for at, (ln, to_lane, via, st), internal in stop_marks:
+            j = int(new_index[at])
             jun = junction_of(via) if via else ""
             self.stops.append(StopLine(s=float(self.s[j]), lane=ln, to_lane=to_lane, via=via or "", junction=jun,
                                        tls=(st or "") in TLS_STATES, initial_state=st or "", internal_length=internal))
