@@ -101,6 +101,17 @@ class SimConfig:
             raise InputError("backend must be libsumo or traci")
         if self.sumo_gui and self.backend != "traci":
             self.backend = "traci"
+        if not 0.01 <= float(self.step_length_s) <= 1.0:
+            # (SUMO takes 0.001..10 s, but the ego's pose goes into SUMO once a step: a step
+            # of seconds lets SUMO's drivers see the car jump)
+            raise InputError(f"step length {self.step_length_s} s is out of range (0.01..1)")
+        if self.physics_hz is not None and not 50 <= float(self.physics_hz) <= 1000:
+            # (the car's tyre model is validated from 100 Hz: models/car/README.md)
+            raise InputError(f"physics rate {self.physics_hz} Hz is out of range (50..1000)")
+        if not 0 < float(self.max_snap_m) <= 1000:
+            raise InputError(f"max snap distance {self.max_snap_m} m is out of range (0..1000]")
+        if not isinstance(self.name, str):
+            raise InputError(f"name must be a string, got {self.name!r}")
         if not 10 <= self.sensor_range_m <= 1000:
             raise InputError("sensor range must be 10..1000 m")
         if not self.sensor_range_m <= self.mirror_radius_m <= 2000:
@@ -113,9 +124,11 @@ class SimConfig:
     def from_toml(cls, path: str | Path) -> "SimConfig":
         path = Path(path)
         try:
-            d = tomllib.loads(path.read_text())
+            d = tomllib.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise InputError(f"scenario file not found: {path}")
+        except UnicodeDecodeError:
+            raise InputError(f"scenario {path.name}: not a TOML file (not UTF-8 text)")
         except (OSError, tomllib.TOMLDecodeError) as e:
             raise InputError(f"scenario {path.name}: {e}")
         base = path.parent
@@ -138,7 +151,12 @@ class SimConfig:
             dems = [w["dem"]] if isinstance(w["dem"], str) else w["dem"]
             w["dem"] = [str((base / p).resolve()) for p in dems]
         world_dir = w.pop("dir", None)
-        cfg = cls(world=WorldConfig.from_dict(w), name=d.get("name", path.stem))
+        if world_dir is not None:
+            world_dir = _typed(path.name, "world", "dir", world_dir, str)
+        name = d.get("name", path.stem)
+        if not isinstance(name, str):
+            raise InputError(f"scenario {path.name}: name must be a string, got {name!r}")
+        cfg = cls(world=WorldConfig.from_dict(w), name=name)
         if world_dir:
             cfg.world_dir = str((base / world_dir).resolve())
         t = d.get("traffic", {})

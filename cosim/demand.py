@@ -277,11 +277,16 @@ def _generate_demand(net_file, out_dir, density, seed, duration, prefill, timeou
         tmp = Path(tmp)
         # vehicles and pedestrians are generated in parallel (two randomTrips processes)
         jobs = {}
-        if plan.vehicles > 0:
+        # a density so low that not one trip falls in the run is no traffic (as 0): randomTrips
+        # found none, and the run stopped with "no routable vehicle trips"
+        if 0 < plan.vehicles and _trips_expected(plan.vehicle_period, plan.vehicle_trip_s, duration, prefill) < 1.0:
+            log.info("demand: %g vehicles per km2 give less than one trip in %.0f s: no traffic",
+                     plan.vehicles_per_km2, duration)
+        if plan.vehicles > 0 and _trips_expected(plan.vehicle_period, plan.vehicle_trip_s, duration, prefill) >= 1.0:
             jobs["veh"] = _start_random_trips(net_file, tmp, "veh", plan.vehicle_period,
                                               plan.vehicle_trip_s, duration, seed, prefill,
                                               persons=False)
-        if plan.persons > 0:
+        if plan.persons > 0 and _trips_expected(plan.person_period, plan.person_trip_s, duration, prefill) >= 1.0:
             jobs["ped"] = _start_random_trips(net_file, tmp, "ped", plan.person_period,
                                               plan.person_trip_s, duration, seed, prefill,
                                               persons=True)
@@ -373,6 +378,11 @@ def _vtypes_xml(vehicles: bool = True, persons: bool = True) -> str:
                      f'height="{phei}" guiShape="pedestrian"/>')
     lines.append("</additional>\n")
     return "\n".join(lines)
+
+
+def _trips_expected(period: float, fill_s: float, duration: float, prefill: bool) -> float:
+    """Trips that depart in the run (and in its prefill) at one every ``period`` s."""
+    return (duration + (fill_s if prefill else 0.0)) / period if period > 0 else math.inf
 
 
 def _start_random_trips(net_file: Path, tmp: Path, prefix: str, period: float, fill_s: float,

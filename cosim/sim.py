@@ -19,6 +19,7 @@ The same class is the Python API (see README) behind ``cosim run``, scenario fil
 from __future__ import annotations
 
 import contextlib
+import copy
 import gc
 import logging
 import math
@@ -37,6 +38,15 @@ log = logging.getLogger("cosim.sim")
 #: the driver's-view camera: metres ahead of the car's centre and above the ground (just ahead of
 #: the windscreen of models/car, whose cabin ends 1.05 m ahead of the centre, above its 0.95 m bonnet)
 DRIVER_CAMERA = (1.1, 1.4)
+MAX_CAMERA_PX = 4096     # camera_image: width and height at most this
+
+
+def _number(value, what: str) -> float:
+    """``value`` as a float, or a one-line InputError naming ``what``."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{what} must be a number, got {value!r}") from None
 
 
 @dataclass
@@ -124,7 +134,11 @@ class Simulation:
     """Build or load a world, start SUMO and PyBullet, drive the ego. See the module doc."""
 
     def __init__(self, config: SimConfig, progress=None, driver=None):
-        self.cfg = config.validate()
+        # a copy: set_speed and set_goal change this run's settings, not the caller's config
+        # (a second Simulation made from it started at the first one's last speed and goal)
+        self._init_args = (config, progress, driver)
+        self._used = False
+        self.cfg = copy.deepcopy(config.validate())
         self.progress = progress or (lambda *a, **k: None)
         self.world = None
         self.traffic = None
@@ -181,6 +195,11 @@ class Simulation:
         from .traffic import SumoTraffic
         from .vehicle import RECOMMENDED_PHYSICS_HZ, EgoVehicle, configure_physics
 
+        if self._setup_done:
+            raise SimulationError("setup() called twice: tear the simulation down first")
+        if self._used:          # set up again after a teardown: a new run (clock, summary, route)
+            self.__init__(*self._init_args)
+        self._used = True
         cfg = self.cfg
         try:
             self.world = self._load_world()
@@ -400,6 +419,10 @@ class Simulation:
         return EgoState(t=self.t, x=st.x, y=st.y, z=st.z, yaw=st.yaw, speed=st.speed, lat=float(lat),
                         lon=float(lon), alt_m=st.z, edge=None if edge.startswith(":") else edge, lane=lane,
                         lateral_offset_m=lat_off, on_road=on_road, roll=st.roll, pitch=st.pitch)
+
+    def _require_setup(self, what: str) -> None:
+        if not self._setup_done:
+            raise SimulationError(f"call setup() before {what}() (or use the Simulation in a with block)")
 
     def step(self) -> EgoState:
         if not self._setup_done:
@@ -824,15 +847,18 @@ class Simulation:
         """Change the set speed while driving."""
         from .config import MAX_SPEED_MPS
 
-        if not 0 <= float(mps) <= MAX_SPEED_MPS:
+        v = _number(mps, "speed")
+        if not 0 <= v <= MAX_SPEED_MPS:
             raise InputError(f"speed {mps} m/s is out of range (0..{MAX_SPEED_MPS:.0f})")
-        self.cfg.speed_mps = float(mps)
+        self.cfg.speed_mps = v
 
     def set_goal(self, lat: float | None, lon: float | None = None) -> dict:
         """Route from where the car is now to a GPS coordinate (None: drive on at random).
         Returns the route length and ETA."""
         from netgen.frame import check_latlon
 
+        self._require_setup("set_goal")
+        goal = None if lat is None else check_latlon(lat, lon, "goal")
         st = self.vehicle.state()
         k, s_here, _ = self.path.project(st.x, st.y, self._path_idx)
         lane = self.path.lane_of[k][0]
@@ -842,14 +868,21 @@ class Simulation:
             pos = 0.0
         else:
             pos = max(0.0, self.traffic.lane_pos(lane, st.x, st.y))
-        old_goal = self.cfg.goal
-        self.cfg.goal = None if lat is None else check_latlon(lat, lon, "goal")
+        # (a goal that cannot be taken leaves the car on its way to the one it had: a second,
+        # rejected destination used to drop the first, and the car never arrived)
+        old = self.cfg.goal, self.goal_xy, self.goal_beyond
+        self.cfg.goal = goal
         self.goal_xy = None
         try:
             self._plan_route(lane, pos)
         except CosimError:
-            self.cfg.goal = old_goal
+            self.cfg.goal, self.goal_xy, self.goal_beyond = old
             raise
+        if goal is None:                # no goal: no route length, ETA or arrival to report
+            for key in ("route_length_m", "eta_s", "goal_snap_m"):
+                self.snap_info.pop(key, None)
+            self._goal_on_path = None
+            self.summary.arrived = None
         return {k: self.snap_info.get(k) for k in ("route_length_m", "eta_s", "goal_snap_m")}
 
     def set_manual(self, control: tuple | None):
@@ -859,7 +892,13 @@ class Simulation:
                 self.driver.speed.reset()
             self.manual = None
         else:
-            t, b, st = control
+            try:
+                t, b, st = (float(v) for v in control)
+            except (TypeError, ValueError):
+                raise InputError(f"manual control must be (throttle, brake, steer), got {control!r}") from None
+            if not all(math.isfinite(v) for v in (t, b, st)):
+                # (NaN passed the clamps below as full throttle, brake and lock)
+                raise InputError(f"manual control must be finite numbers, got {control!r}")
             self.manual = (max(0.0, min(1.0, t)), max(0.0, min(1.0, b)), max(-1.0, min(1.0, st)))
 
     def camera_image(self, width: int = 480, height: int = 270, view: str = "chase"):
@@ -868,6 +907,14 @@ class Simulation:
         its visual meshes are loaded (``SimConfig(render=True)`` or ``gui=True``); a headless
         run loads none (they cost time and memory), and its picture shows the cars alone (a
         warning says so, once)."""
+        self._require_setup("camera_image")
+        for what, v in (("width", width), ("height", height)):
+            # (a negative size aborted the whole process inside PyBullet: std::bad_alloc)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= MAX_CAMERA_PX:
+                raise InputError(f"camera image {what} must be a whole number of pixels from 1 to "
+                                 f"{MAX_CAMERA_PX}, got {v!r}")
+        if view not in ("chase", "driver"):
+            raise InputError(f"camera view must be 'chase' or 'driver', got {view!r}")
         if not self.physics.visuals and not self._warned_no_visuals:
             self._warned_no_visuals = True
             log.warning("camera_image: this simulation loaded no visual meshes, so the picture shows "
@@ -898,6 +945,7 @@ class Simulation:
 
     def traffic_lights(self) -> dict:
         """State string of every traffic light (SUMO's letters: r, y, G, g, ...)."""
+        self._require_setup("traffic_lights")
         return self.traffic.tls_states()
 
     # ------------------------------------------------------------------------------------

@@ -88,6 +88,12 @@ class WorldConfig:
         sp = self.spacing
         if not 0.5 <= sp <= 10.0:
             raise InputError(f"terrain spacing must be 0.5..10 m, got {sp}")
+        if not 0 < float(self.http_timeout_s) <= 3600:
+            raise InputError(f"HTTP timeout must be 0..3600 s, got {self.http_timeout_s}")
+        if isinstance(self.http_retries, bool) or not isinstance(self.http_retries, int) or not 0 <= self.http_retries <= 20:
+            raise InputError(f"HTTP retries must be a whole number from 0 to 20, got {self.http_retries!r}")
+        if isinstance(self.jobs, bool) or not isinstance(self.jobs, int) or not 1 <= self.jobs <= 64:
+            raise InputError(f"jobs must be a whole number from 1 to 64, got {self.jobs!r}")
         n_elev = sum(bool(x) for x in (self.dem, self.elevation_url, self.flat))
         if n_elev > 1:
             raise InputError("give only one of --dem, --elevation, --flat")

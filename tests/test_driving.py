@@ -551,6 +551,90 @@ def test_env_step_api_and_callback_driver(helsinki):
     assert math.hypot(x1.x - x0.x, x1.y - x0.y) > 40.0 and max(lats) < 1.0
 
 
+def test_live_controls_refuse_bad_input_and_a_refused_goal_keeps_the_current_one(helsinki):
+    """A script's mistakes are one-line InputErrors that change nothing:
+    - a destination that cannot be taken (off the roads, outside the world) leaves the car
+      on its way to the one it had (it used to drop it: the car never arrived);
+    - ``set_goal(None)`` drops the goal and its figures (it returned the old route's length and
+      ETA, and the summary still said "goal NOT reached");
+    - camera sizes below one pixel (a negative one aborted the process inside PyBullet), an
+      unknown view, manual controls that are not three finite numbers (NaN drove as full
+      throttle, brake and lock), a set speed that is not a number.
+    Before setup, the live calls say to call setup()."""
+    from netgen.errors import InputError, SimulationError
+
+    cfg = SimConfig(world_dir=helsinki, traffic="none", seed=1, start=HEL_MID, goal=HEL_GOAL, speed_mps=10.0,
+                    duration_s=60)
+    idle = Simulation(cfg)
+    for call in (lambda: idle.set_goal(*HEL_GOAL), idle.traffic_lights, lambda: idle.camera_image(64, 48)):
+        with pytest.raises(SimulationError, match=r"call setup\(\) before"):
+            call()
+    sim = Simulation(cfg).setup()
+    sim.physics.load_budget_ms = 1e9
+    try:
+        for _ in range(10):
+            sim.step()
+        goal, left = sim.goal_xy, sim.route_left()
+        assert goal is not None and left is not None
+        for bad in ((60.1740, 24.9456), (60.30, 25.20)):        # 137 m from any road; 15 km away
+            with pytest.raises(InputError, match="goal"):
+                sim.set_goal(*bad)
+            assert sim.goal_xy == goal and sim.cfg.goal == HEL_GOAL and sim.route_left() is not None
+        with pytest.raises(InputError, match="latitude"):
+            sim.set_goal(95.0, 24.9)
+        assert sim.goal_xy == goal
+        for w, h in ((-5, 10), (0, 0), (64, 10**6), (64.5, 48)):
+            with pytest.raises(InputError, match="camera image (width|height) must be a whole number of pixels"):
+                sim.camera_image(w, h)
+        with pytest.raises(InputError, match="camera view must be 'chase' or 'driver'"):
+            sim.camera_image(64, 48, view="bogus")
+        for control in ((float("nan"),) * 3, (0.3, 0.1), ("a", 0, 0), None.__class__):
+            with pytest.raises(InputError, match="manual control must be"):
+                sim.set_manual(control)
+        assert sim.manual is None
+        with pytest.raises(InputError, match="speed must be a number, got 'x'"):
+            sim.set_speed("x")
+        info = sim.set_goal(None)
+        assert info == {"route_length_m": None, "eta_s": None, "goal_snap_m": None}
+        assert sim.goal_xy is None and sim.route_left() is None and sim.summary.arrived is None
+        for _ in range(20):
+            sim.step()
+        assert "goal" not in sim.finish().line()
+    finally:
+        sim.teardown()
+
+
+def test_a_simulation_leaves_its_config_alone_and_sets_up_afresh_after_a_teardown(helsinki):
+    """``set_speed`` and ``set_goal`` change the run, not the caller's SimConfig (a second
+    Simulation made from it started at the first one's last speed and goal); ``setup()`` after
+    ``teardown()`` is a new run: its clock and summary start from zero (they went on from the
+    first run's, and the summary added both runs up)."""
+    cfg = SimConfig(world_dir=helsinki, traffic="none", seed=1, start=HEL_MID, goal=HEL_GOAL, speed_mps=10.0,
+                    duration_s=60)
+    sim = Simulation(cfg).setup()
+    try:
+        for _ in range(30):
+            sim.step()
+        sim.set_speed(3.0)
+        sim.set_goal(None)
+        assert (cfg.speed_mps, cfg.goal) == (10.0, HEL_GOAL)
+        first = sim.finish()
+        assert first.distance_m > 5.0
+    finally:
+        sim.teardown()
+    sim.setup()
+    try:
+        assert sim.t == 0.0 and sim.summary.distance_m == 0.0 and sim.cfg.speed_mps == 10.0 and sim.goal_xy is not None
+        for _ in range(10):
+            sim.step()
+        again = sim.finish()
+        assert again.sim_time_s == pytest.approx(1.0) and again.distance_m < first.distance_m
+        with pytest.raises(Exception, match="setup\\(\\) called twice"):
+            sim.setup()
+    finally:
+        sim.teardown()
+
+
 def test_env_same_seed_gives_the_same_episode(helsinki):
     """``reset(seed=N)`` twice, then the same actions: the same observations and infos step
     for step, with traffic (Gymnasium's ``check_env`` checks this). A seed equal to the running

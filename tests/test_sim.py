@@ -263,6 +263,10 @@ def test_scenario_files_load_typed_and_their_mistakes_are_named(tmp_path):
         '[place]\npreset = "kouvola"\n': "unknown table(s) place",
         'world = 3\n': "[world] must be a table",
         'this is [not toml\n': "Expected '=' after a key",
+        # (these ended in a traceback, or ran with nonsense: a step of 0 s stopped SUMO's worker
+        # with "SUMO crashed on this network", physics at -100 Hz drove 0 m and exited 0)
+        '[world]\ndir = 5\n': "[world] dir must be a string, got 5",
+        'name = 5\n[world]\npreset = "kouvola"\n': "name must be a string, got 5",
     }
     for text, says in bad.items():
         f = tmp_path / "bad.toml"
@@ -270,6 +274,23 @@ def test_scenario_files_load_typed_and_their_mistakes_are_named(tmp_path):
         with pytest.raises(InputError) as e:
             SimConfig.from_toml(f)
         assert str(e.value).startswith("scenario bad.toml: ") and says in str(e.value), (text, str(e.value))
+    f.write_bytes(b"\xff\xfe\x00garbage")
+    with pytest.raises(InputError, match=r"^scenario bad.toml: not a TOML file \(not UTF-8 text\)$"):
+        SimConfig.from_toml(f)
+    out_of_range = {
+        "[run]\nstep_length_s = 0": "step length 0.0 s is out of range (0.01..1)",
+        "[run]\nstep_length_s = 50": "step length 50.0 s is out of range (0.01..1)",
+        "[run]\nphysics_hz = -100": "physics rate -100.0 Hz is out of range (50..1000)",
+        "[run]\nphysics_hz = 0": "physics rate 0.0 Hz is out of range (50..1000)",
+        "[ego]\nmax_snap_m = -1": "max snap distance -1.0 m is out of range (0..1000]",
+        "[world]\npreset = \"kouvola\"\njobs = 0": "jobs must be a whole number from 1 to 64, got 0",
+        "[world]\npreset = \"kouvola\"\nhttp_timeout_s = -1": "HTTP timeout must be 0..3600 s, got -1.0",
+    }
+    for text, says in out_of_range.items():
+        f.write_text(('[world]\npreset = "kouvola"\n' if "[world]" not in text else "") + text + "\n")
+        with pytest.raises(InputError) as e:
+            SimConfig.from_toml(f)
+        assert str(e.value) == says, (text, str(e.value))
     for seed in (-1, 2**31, 99999999999):       # (SUMO's tools take a 32-bit seed: 99999999999 failed
         with pytest.raises(InputError, match=rf"^seed must be a whole number from 0 to 2147483647, got {seed}$"):
             SimConfig(world=c.world, seed=seed).validate()     # in randomTrips, "FileNotFoundError")

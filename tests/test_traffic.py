@@ -168,6 +168,15 @@ def test_demand_repeatable_and_seeded(helsinki_net, tmp_path):
     assert not list(tmp_path.rglob("*.tmp-*"))   # atomic writes leave nothing behind
 
 
+def test_a_density_too_low_for_one_trip_is_no_traffic(helsinki_net, tmp_path):
+    """``--traffic 1e-9``: not one trip falls in the run, which is no traffic, as 0 is (the
+    run stopped with "no routable vehicle trips ... found no connected roads for cars")."""
+    d = generate_demand(helsinki_net, tmp_path, 1e-9, seed=1, duration=60)
+    assert d.vehicles_file is None and d.persons_file is None and d.n_vehicles == 0 and d.route_files == []
+    some = generate_demand(helsinki_net, tmp_path, 5.0, seed=1, duration=600)
+    assert some.n_vehicles >= 1
+
+
 def test_demand_errors(tmp_path):
     with pytest.raises(Exception) as ei:
         generate_demand(tmp_path / "missing.net.xml", tmp_path, "light")
