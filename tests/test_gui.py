@@ -283,6 +283,9 @@ def test_idle_with_defaults_then_ready(qtbot, worlds):
     win = MainWindow(out_root=worlds, realtime=False, preset="kouvola")
     qtbot.addWidget(win)
     try:
+        # the window fits a laptop's 1366 x 768 screen: the inputs scroll (it needed 939 px)
+        hint = win.minimumSizeHint()
+        assert hint.height() <= 700 and hint.width() <= 1000, (hint.width(), hint.height())
         _idle_then_ready(win, qtbot)
     finally:
         win.shutdown()
@@ -549,9 +552,27 @@ def test_run_with_live_controls_then_stop(win, qtbot, kouvola_world):
     qtbot.mouseClick(win.btn_goal, Qt.LeftButton)
     qtbot.waitUntil(lambda: win.last_goal is not None, timeout=20_000)
     assert "nearest road" in win.last_goal["error"] and win.lbl_msg.text().startswith("Destination: ")
+    # outlined, as before a run; the car is still on its way to the destination it had (the
+    # refused one dropped it, and the route line stopped)
+    from ui.app import ERROR_STYLE
+
+    assert win.ed_dest_lat.styleSheet() == ERROR_STYLE and win.ed_dest_lon.styleSheet() == ERROR_STYLE
     t = win.last_frame["t"]
     qtbot.waitUntil(lambda: win.last_frame["t"] > t + 1.0, timeout=10_000)
     assert win.state is S.SIMULATION
+    assert win.last_frame["route_left"] is not None and "m to the destination" in win.live["route"].text()
+    # no destination: the route line says so (it kept the old route's length and ETA)
+    win.last_goal = None
+    win.ed_dest_lat.clear()
+    win.ed_dest_lon.clear()
+    qtbot.mouseClick(win.btn_goal, Qt.LeftButton)
+    qtbot.waitUntil(lambda: win.last_goal is not None, timeout=20_000)
+    assert "error" not in win.last_goal and win.last_goal["route_length_m"] is None
+    assert win.live["route"].text() == "no destination: driving on at random"
+    assert win.ed_dest_lat.styleSheet() == "" and win.lbl_msg.text() == ""
+    t = win.last_frame["t"]
+    qtbot.waitUntil(lambda: win.last_frame["t"] > t + 1.0, timeout=10_000)
+    assert win.live["route"].text() == "no destination: driving on at random"
 
     # a warning logged by the simulation shows on the status line
     import logging

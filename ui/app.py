@@ -24,9 +24,10 @@ from pathlib import Path
 from PyQt5.QtCore import QEvent, QRectF, Qt, QTimer, pyqtSignal
 from PyQt5.QtGui import QImage, QPainter, QColor
 from PyQt5.QtWidgets import (QAbstractSpinBox, QApplication, QButtonGroup, QCheckBox, QComboBox,
-                             QFileDialog, QFormLayout, QGridLayout, QGroupBox, QHBoxLayout, QLabel,
-                             QLineEdit, QMainWindow, QProgressBar, QPushButton, QRadioButton,
-                             QSizePolicy, QSplitter, QStatusBar, QVBoxLayout, QWidget)
+                             QFileDialog, QFormLayout, QFrame, QGridLayout, QGroupBox, QHBoxLayout,
+                             QLabel, QLineEdit, QMainWindow, QProgressBar, QPushButton, QRadioButton,
+                             QScrollArea, QSizePolicy, QSplitter, QStatusBar, QStyle, QVBoxLayout,
+                             QWidget)
 
 from cosim.config import DENSITIES, MAX_SPEED_MPS
 from cosim.display import display_problem
@@ -164,14 +165,19 @@ class MainWindow(QMainWindow):
             self.cb_preset.setItemData(self.cb_preset.count() - 1, p.place, Qt.ToolTipRole)
         i = self.cb_preset.findData(preset)
         self.cb_preset.setCurrentIndex(max(0, i))
+        # (short placeholders: the fields are narrow, and a cut one reads "latitude -90.....")
         self.ed_lat = QLineEdit()
-        self.ed_lat.setPlaceholderText("latitude -90..90")
+        self.ed_lat.setPlaceholderText("latitude")
+        self.ed_lat.setToolTip("start latitude, -90..90 degrees")
         self.ed_lon = QLineEdit()
-        self.ed_lon.setPlaceholderText("longitude -180..180")
+        self.ed_lon.setPlaceholderText("longitude")
+        self.ed_lon.setToolTip("start longitude, -180..180 degrees")
         self.ed_osm = QLineEdit()
-        self.ed_osm.setPlaceholderText("optional: .osm / .osm.pbf (default: preset or Overpass)")
+        self.ed_osm.setPlaceholderText("optional .osm / .pbf")
+        self.ed_osm.setToolTip("an OSM file: .osm, .osm.pbf, .osm.gz or .osm.bz2 (default: the preset's, or Overpass)")
         self.ed_dem = QLineEdit()
-        self.ed_dem.setPlaceholderText("optional: SRTM .hgt / GeoTIFF")
+        self.ed_dem.setPlaceholderText("optional .hgt / GeoTIFF")
+        self.ed_dem.setToolTip("a DEM file: SRTM .hgt / .hgt.zip, or a GeoTIFF in a geographic CRS")
         self.chk_flat = QCheckBox("Flat ground when there is no DEM")
         b_osm = QPushButton("…")
         b_osm.setFixedWidth(28)
@@ -267,24 +273,35 @@ class MainWindow(QMainWindow):
         lv.addWidget(self.progress)
 
         # live values
-        g = QGroupBox("Live")
+        g = self.live_box = QGroupBox("Live")
         gl = QGridLayout(g)
         self.live = {}
         for r, (k, name) in enumerate([("lat", "Latitude"), ("lon", "Longitude"), ("speed", "Velocity"),
-                                       ("t", "Sim time"), ("mode", "Driving"), ("control", "Controls"),
-                                       ("route", "Route")]):
+                                       ("t", "Sim time"), ("mode", "Driving"), ("control", "Pedals"),
+                                       ("steer", "Steering"), ("route", "Route")]):
             gl.addWidget(QLabel(name), r, 0)
             lab = QLabel("—")
             lab.setTextInteractionFlags(Qt.TextSelectableByMouse)
+            lab.setWordWrap(k == "route")       # (the longest: "no destination: driving on at random")
             gl.addWidget(lab, r, 1)
             self.live[k] = lab
+        gl.setColumnStretch(1, 1)
         lv.addWidget(g)
         lv.addStretch(1)
         hint = QLabel("Keys: arrows / WASD drive, M manual/auto, Esc leaves a text field")
         hint.setWordWrap(True)
         hint.setStyleSheet("color: #666;")
         lv.addWidget(hint)
-        root.addWidget(left)
+        # the inputs scroll where the screen is short (a laptop's 768 px): the window's least
+        # height was the whole column's, 939 px
+        scroll = QScrollArea()
+        scroll.setWidget(left)
+        scroll.setWidgetResizable(True)
+        scroll.setFrameShape(QFrame.NoFrame)
+        scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarAlwaysOff)
+        scroll.setFixedWidth(left.width() + self.style().pixelMetric(QStyle.PM_ScrollBarExtent) + 2)
+        self.inputs_scroll = scroll
+        root.addWidget(scroll)
 
         # right: camera above the map
         right = QSplitter(Qt.Vertical)
@@ -482,6 +499,8 @@ class MainWindow(QMainWindow):
         self.worker.arm()
         self._to_start.emit(cfg)
         self.map.setFocus()
+        # on a short screen the inputs scroll: show the live values (the inputs are locked now)
+        QTimer.singleShot(0, lambda: self.inputs_scroll.ensureWidgetVisible(self.live_box, 0, 0))
 
     def stop(self):
         """Simulation --stop--> Stop: the worker ends the run and tears SUMO and PyBullet down."""
@@ -557,7 +576,8 @@ class MainWindow(QMainWindow):
         self.live["t"].setText(f"{f['t']:.1f} s")
         th, br, st = f["control"]
         self.live["mode"].setText("manual (keys)" if f["manual"] else "automatic")
-        self.live["control"].setText(f"throttle {th:.0%} · brake {br:.0%} · steer {st:+.0%}")
+        self.live["control"].setText(f"throttle {th:.0%} · brake {br:.0%}")
+        self.live["steer"].setText(f"{abs(st):.0%} {'left' if st > 0 else 'right' if st < 0 else ''}".rstrip())
         if f.get("arrived"):
             self.live["route"].setText("arrived at the destination")
         elif f.get("route_left") is not None:
@@ -591,8 +611,10 @@ class MainWindow(QMainWindow):
     def _on_goal(self, info):
         self.last_goal = info
         if "error" in info:
+            self._mark([V.FieldError("dest", info["error"])])      # (outlined, as before a run)
             self._show_message("Destination: " + info["error"], error=True)
             return
+        self._mark([])
         self._show_message("")
         self.map.set_route(info.get("route"), info.get("goal_xy"))
         self._update_route_label(info)
