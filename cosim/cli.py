@@ -284,8 +284,15 @@ def cmd_gui(a):
     return launch(preset=a.preset, worlds=a.worlds, realtime=not a.no_realtime)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, whose mistakes are one line (as every other bad input's), not its usage block."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def make_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="cosim", description="Turn any place on Earth into a drivable, "
+    p = _Parser(prog="cosim", description="Turn any place on Earth into a drivable, "
                                 "traffic-filled simulation (OpenStreetMap + elevation -> SUMO + PyBullet).")
     sub = p.add_subparsers(dest="cmd", metavar="COMMAND")
     sp = sub.add_parser("presets", help="list the embedded presets", description="List the embedded presets.")

@@ -1901,6 +1901,18 @@ def test_cli_output_into_a_closed_pipe_is_no_traceback(tmp_path):
     assert p.returncode == 141
 
 
+def test_cli_usage_mistakes_are_one_line(tmp_path):
+    """A missing value, an unknown command or a wrong type on the command line: one line and
+    exit code 2, as every other bad input (argparse printed its 13-line usage block first)."""
+    for args, says in ((["run", "--speed"], "cosim run: error: argument --speed: expected one argument"),
+                       (["bogus"], "cosim: error: argument COMMAND: invalid choice: 'bogus'"),
+                       (["build", "--chunks", "x"], "cosim build: error: argument --chunks: invalid int value: 'x'")):
+        r = subprocess.run(CLI + args, cwd=tmp_path, capture_output=True, text=True, timeout=60)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith(says), (args, r.stderr)
+        assert lines[0].endswith("--help)") and r.stdout == ""
+
+
 def test_the_build_progress_bar_fills_through_the_stages_and_the_report_reads_well(tmp_path):
     """On a terminal the bar fills as a real build goes through its stages (every stage drew
     an empty bar until the last one, which filled it at once); the report's terrain line of
