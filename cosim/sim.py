@@ -965,7 +965,7 @@ class Simulation:
             self.telemetry.flush()      # a full disk is the run's error, not a teardown warning
         s = self.summary
         s.sim_time_s = round(self.t, 3)
-        s.wall_time_s = round(time.perf_counter() - (self._wall0 or time.perf_counter()), 3)
+        s.wall_time_s = round(time.perf_counter() - self._wall0, 3) if self._wall0 is not None else 0.0
         s.real_time_factor = round(s.sim_time_s / s.wall_time_s, 2) if s.wall_time_s > 0 else 0.0
         if self.physics is not None:
             s.tiles_loaded, s.tiles_unloaded = self.physics.loads, self.physics.unloads
