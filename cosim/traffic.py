@@ -1566,7 +1566,7 @@ class SumoTraffic(Component):
             yield
             try:
                 tail = yield from self._lane_path_steps(more, start_lane, lead_in)
-            except (ValueError, self._exc):
+            except self._exc + (ValueError,):
                 tail = None          # (the main process builds it, and says why)
         return n - 1, more, rng.getstate(), tail
 
@@ -2108,7 +2108,7 @@ class SumoTraffic(Component):
                 if not fid or fid in carried or fid == EGO_ID:
                     continue
                 v = s.vehicle.getSpeed(fid)
-            except (self._exc, ValueError):
+            except self._exc + (ValueError,):
                 continue
             if _cannot_stop(gap, max(0.0, v - k.speed)):
                 try:
@@ -2208,7 +2208,7 @@ class SumoTraffic(Component):
                 if self._edge_near(first, cx, cy, radius):
                     s.vehicle.remove(vid)
                     n += 1
-            except (self._exc, IndexError):
+            except self._exc + (IndexError,):
                 pass
         return n
 
