@@ -1411,7 +1411,15 @@ class SumoTraffic(Component):
         lane = f"{edge}_{idx}"
         from .driving import _lane_allows, is_tunnel
 
-        if is_tunnel(s, edge):
+        guard = 0
+        while lane.startswith(":") and guard < 5:
+            links = s.lane.getLinks(lane)
+            if not links:
+                break
+            lane, pos, guard = links[0][0], 0.0, guard + 1
+        # (the tunnel checked on the lane a junction's lane leads into: a Monaco start snapped
+        # onto a junction lane went on into a tunnel, and the car drove on bare terrain)
+        if is_tunnel(s, lane.rsplit("_", 1)[0]):
             # the world has no tunnels: the nearest lane on the surface instead
             best = None
             for ln in s.lane.getIDList():
@@ -1426,12 +1434,6 @@ class SumoTraffic(Component):
             if best is not None:
                 lane = best[1]
                 pos = self.lane_pos(lane, x, y)
-        guard = 0
-        while lane.startswith(":") and guard < 5:
-            links = s.lane.getLinks(lane)
-            if not links:
-                break
-            lane, pos, guard = links[0][0], 0.0, guard + 1
         shape = np.array(s.lane.getShape(lane))
         d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(shape, axis=0).T))])
         pos = min(max(pos, 0.0), d[-1])

@@ -1130,7 +1130,7 @@ def test_routes_go_around_tunnels_and_turns_the_car_cannot_make(monaco):
     1699777425 is drawn tighter than the car can turn. The step through the hairpin is found
     undrivable, random routes from the start avoid it and every tunnel, and a route into a
     tunnel is replaced by a way around it."""
-    from cosim.driving import (TURN_DEVIATION_MAX_M, _link_deviation, is_tunnel, undrivable_steps,
+    from cosim.driving import (TURN_DEVIATION_MAX_M, _lane_allows, _link_deviation, is_tunnel, undrivable_steps,
                                without_turnarounds)
 
     sim = start_sim(monaco)
@@ -1199,6 +1199,20 @@ def test_routes_go_around_tunnels_and_turns_the_car_cannot_make(monaco):
         P = np.array(s.lane.getShape(tl))
         lane, _, px, py, _, dist = sim.traffic.snap_lane(*P[len(P) // 2])
         assert lane.rsplit("_", 1)[0] not in tunnels and dist > 0.0
+        # and where SUMO's nearest lane is a junction's that leads into a tunnel (a start
+        # there went on into the tunnel, and the car drove on bare terrain into a sidewalk)
+        into = []
+        for jl in s.lane.getIDList():
+            links = s.lane.getLinks(jl) if jl.startswith(":") else ()
+            if links and links[0][0].rsplit("_", 1)[0] in tunnels and _lane_allows(s, jl, "passenger"):
+                Q = np.array(s.lane.getShape(jl))
+                at = Q[len(Q) // 2] if len(Q) > 2 else Q.mean(axis=0)
+                if s.simulation.convertRoad(float(at[0]), float(at[1]), False, "passenger")[0].startswith(":"):
+                    into.append(at)
+        assert into
+        for at in into:
+            lane, *_ = sim.traffic.snap_lane(float(at[0]), float(at[1]))
+            assert lane.rsplit("_", 1)[0] not in tunnels and not lane.startswith(":"), (at, lane)
     finally:
         sim.teardown()
 
