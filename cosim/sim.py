@@ -93,6 +93,7 @@ class Summary:
     network_swaps: int = 0
     swap_ms_max: float = 0.0
     swap_wait_s: float = 0.0         # wall time a repeatable run waited for late window builds
+    swap_actors_lost: int = 0        # actors near the car at a swap that the new network's SUMO could not take
     sumo_restarts: int = 0           # SUMO's worker process crashed and was started again
     lifted_out: int = 0              # the car set on top of a replaced tile's higher ground (_lift_out)
     other_ways: int = 0              # routes taken on from the car's own lane after a lane change never came
@@ -110,6 +111,8 @@ class Summary:
                 f"pedestrians stopped for the ego {self.persons_held}; sensor-range violations {self.sensor_range_violations}; "
                 f"windows built {self.windows_built}, SUMO network swaps {self.network_swaps}"
                 + (f" (waited {self.swap_wait_s:.1f} s for late builds)" if self.swap_wait_s else "")
+                + (f"; actors near the car not carried over the swaps {self.swap_actors_lost}"
+                   if self.swap_actors_lost else "")
                 + (f"; SUMO restarted after a crash {self.sumo_restarts} time(s)" if self.sumo_restarts else "")
                 + (f"; the car set on top of new, higher ground {self.lifted_out} time(s)" if self.lifted_out else "")
                 + (f"; another way taken after waiting {LANE_CHANGE_GIVE_UP_S:.0f} s for a lane change "
@@ -185,6 +188,7 @@ class Simulation:
         self._extension_asked = None       # (route, generator state) of the extension prepared
         self._setup_done = False
         self._gc_frozen = False
+        self._lost_before_restart = 0      # swap_actors_lost of SUMOs restarted after a crash
 
     # ------------------------------------------------------------------------------------
     def setup(self) -> "Simulation":
@@ -448,6 +452,7 @@ class Simulation:
             self._routes = self._swap_next[1]
         self._swap_next = self._swap_adopting = None
         try:
+            self._lost_before_restart += self.traffic.stats.swap_lost
             self.traffic.teardown()
         except Exception:
             pass
@@ -975,6 +980,7 @@ class Simulation:
             s.sumo_collisions, s.sumo_teleports = self.traffic.stats.collisions, self.traffic.stats.teleports
             s.persons_held = self.traffic.stats.persons_held
             s.standoffs_released = getattr(self.traffic.stats, "released", 0)
+            s.swap_actors_lost = self._lost_before_restart + getattr(self.traffic.stats, "swap_lost", 0)
         s.chunks_visited = len(self._chunks_seen)
         if self._frame_ms:
             f = np.array(self._frame_ms)

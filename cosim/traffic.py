@@ -304,6 +304,7 @@ class TrafficStats:
     max_vehicles: int = 0
     max_persons: int = 0
     swap_dropped: int = 0      # carried persons a swap had to drop (see _drop_stranded_persons)
+    swap_lost: int = 0         # actors near the ego at a swap that the new SUMO does not have (these too)
     persons_held: int = 0      # times a pedestrian stopped rather than walk into the ego (_persons_yield)
     released: int = 0          # vehicles taken out after a standoff with the ego (release_standoff)
     _seen_collisions: set = field(default_factory=set, repr=False)
@@ -2042,6 +2043,7 @@ class SumoTraffic(Component):
         self.stats.steps -= 2
         self._set_carried_speeds(kept, mapping)
         self._clear_behind_carried(kept, mapping)
+        self.stats.swap_lost += len(kept) - len(mapping)
         log.info("swap_network: %s, kept %d of %d actors within %.0f m", self.net_file.name,
                  len(mapping), len(kept), carry["keep_radius"])
         return mapping
@@ -2173,6 +2175,7 @@ class SumoTraffic(Component):
         self._drop_stranded_persons(mapping)
         self._set_carried_speeds(ahead, mapping)
         self._clear_behind_carried(ahead, mapping)
+        self.stats.swap_lost += len(ahead) - len(mapping)
         log.info("swap_network: %s, kept %d of %d actors within %.0f m (in the loop's step)", self.net_file.name,
                  len(mapping), len(ahead), carry["keep_radius"])
         return mapping

@@ -622,6 +622,9 @@ def test_persons_carried_onto_a_walk_ending_in_a_junction_are_dropped(helsinki_w
     assert summary.sumo_restarts == 0, summary.notes
     assert swaps == 1, "the run no longer swaps windows before t = 225 s"
     assert dropped >= 1, "the swap no longer meets stranded persons"
+    # the summary says that actors near the car did not come over (they vanished unsaid)
+    assert summary.swap_actors_lost >= dropped
+    assert f"actors near the car not carried over the swaps {summary.swap_actors_lost}" in summary.line()
 
 
 def test_car_waits_while_a_pedestrian_walks_through_it_in_sumo(helsinki_world):

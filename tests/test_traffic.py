@@ -671,6 +671,7 @@ def test_swap_network_keeps_actors_near_ego(helsinki_net, dense, traffic):
     # SUMO when it ends) is dropped and counted; everything else is carried
     missing = [old for old in before.ids if old not in mapping]
     assert len(missing) == t.stats.swap_dropped <= 1, (missing, t.stats.swap_dropped)
+    assert t.stats.swap_lost == len(missing)        # (the run's summary reports them)
     assert all(before.kind[before.index(old)] == "person" for old in missing)
     for i, old in enumerate(before.ids):
         if old in missing:
