@@ -360,7 +360,7 @@ class Simulation:
         if g is not None:
             beyond = bool(g.get("beyond")) and self.goal_xy is not None
             if g["dist"] > self.cfg.max_snap_m and not beyond:
-                raise InputError(f"goal is {g['dist']:.0f} m from the nearest road for cars")
+                raise InputError(self._far_goal(g))
             if not plan["route"]:
                 on = f"{g['street']} (lane {g['lane']})" if g.get("street") else f"lane {g['lane']}"
                 raise InputError(f"goal unreachable: its nearest road for cars, {on}, {g['dist']:.0f} m from it, "
@@ -386,6 +386,19 @@ class Simulation:
         self.route = plan["route"]
         self.path = plan["path"]
         self._path_idx = 0
+
+    def _far_goal(self, g: dict) -> str:
+        """Why a goal this far from a road cannot be taken: outside the world (a goal beyond the
+        built area was "1334 m from the nearest road", though the OSM data has roads there), or
+        in it, off the roads."""
+        gx, gy = self._plan_kw()["goal_xy"]
+        x0, y0, x1, y1 = self.world.loaded_extent()
+        if not (x0 <= gx <= x1 and y0 <= gy <= y1):
+            lat, lon = self.cfg.goal
+            return (f"goal ({lat:.5f}, {lon:.5f}) is outside the world, {math.hypot(gx, gy) / 1000:.1f} km from its "
+                    f"centre (x {x0:.0f}..{x1:.0f}, y {y0:.0f}..{y1:.0f} m): pick a goal inside it, or build a "
+                    f"larger world (--chunks) or one around the goal")
+        return f"goal is {g['dist']:.0f} m from the nearest road for cars"
 
     def _route_to_goal(self, path, gx: float, gy: float) -> tuple[float, float]:
         """The length of ``path`` from the car (where it starts) to the goal's point, and the

@@ -1444,6 +1444,50 @@ class SumoTraffic(Component):
         yaw = math.atan2(shape[k, 1] - shape[k - 1, 1], shape[k, 0] - shape[k - 1, 0])
         return lane, float(pos), float(px), float(py), yaw, math.hypot(px - x, py - y)
 
+    def _route_from(self, firsts, to_edge: str):
+        """SUMO's fastest route from one of the edges ``firsts`` to ``to_edge``, or None."""
+        best = None
+        for first in firsts:
+            try:
+                r = self._sim.simulation.findRoute(first, to_edge, vType="DEFAULT_VEHTYPE")
+            except self._exc:
+                continue
+            if r.edges and (best is None or r.travelTime < best.travelTime):
+                best = r
+        return best
+
+    def _lanes_near(self, x: float, y: float, radius: float, vclass: str = "passenger", most: int = 12) -> list:
+        """(distance, lane) of the lanes on the surface a ``vclass`` may use within ``radius``
+        of (x, y), nearest first, one lane an edge, at most ``most``."""
+        from .driving import _lane_allows, is_tunnel
+
+        s = self._sim
+        found = {}
+        for ln in s.lane.getIDList():
+            if ln.startswith(":"):
+                continue
+            P = np.asarray(s.lane.getShape(ln), dtype=float)
+            if len(P) < 2 or (P[:, 0].min() - radius > x or P[:, 0].max() + radius < x
+                              or P[:, 1].min() - radius > y or P[:, 1].max() + radius < y):
+                continue
+            d = _polyline_distance(P, x, y)
+            edge = ln.rsplit("_", 1)[0]
+            if d <= radius and d < found.get(edge, (math.inf,))[0] and _lane_allows(s, ln, vclass) \
+                    and not is_tunnel(s, edge):
+                found[edge] = (d, ln)
+        return sorted(found.values())[:most]
+
+    def _point_on(self, lane: str, x: float, y: float) -> tuple:
+        """As :meth:`snap_lane` answers, for a given ``lane``."""
+        pos = self.lane_pos(lane, x, y)
+        shape = np.array(self._sim.lane.getShape(lane), dtype=float)
+        d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(shape, axis=0).T))])
+        k = min(max(int(np.searchsorted(d, pos)), 1), len(shape) - 1)
+        t = (pos - d[k - 1]) / max(d[k] - d[k - 1], 1e-9)
+        px, py = shape[k - 1] + t * (shape[k] - shape[k - 1])
+        yaw = math.atan2(shape[k, 1] - shape[k - 1, 1], shape[k, 0] - shape[k - 1, 0])
+        return lane, float(pos), float(px), float(py), yaw, math.hypot(px - x, py - y)
+
     def lane_pos(self, lane: str, x: float, y: float) -> float:
         """Position along ``lane`` of the point of it nearest to (x, y)."""
         shape = np.array(self._require().lane.getShape(lane), dtype=float)
@@ -1740,14 +1784,23 @@ class SumoTraffic(Component):
                 if not beyond_ok:
                     return dict(out, route=[], path=None)
                 out["goal"]["beyond"] = True
-            best = None
-            for first in firsts:
-                try:
-                    r = s.simulation.findRoute(first, glane.rsplit("_", 1)[0], vType="DEFAULT_VEHTYPE")
-                except self._exc:
-                    continue
-                if r.edges and (best is None or r.travelTime < best.travelTime):
-                    best = r
+            best = self._route_from(firsts, glane.rsplit("_", 1)[0])
+            if best is None and gdist <= max_goal_snap_m:
+                # the nearest road does not lead there (cut off where the OSM extract ends, say:
+                # "goal unreachable" though a road the car reaches lay 50 m off): the nearest
+                # one within the snap distance that it does reach
+                for d, ln in self._lanes_near(float(goal_xy[0]), float(goal_xy[1]), max_goal_snap_m):
+                    if ln.rsplit("_", 1)[0] == glane.rsplit("_", 1)[0]:
+                        continue
+                    best = self._route_from(firsts, ln.rsplit("_", 1)[0])
+                    if best is not None:
+                        glane, gpos, gpx, gpy, _, gdist = self._point_on(ln, float(goal_xy[0]), float(goal_xy[1]))
+                        try:
+                            street = s.edge.getStreetName(ln.rsplit("_", 1)[0])
+                        except self._exc:
+                            street = ""
+                        out["goal"] = dict(lane=glane, pos=gpos, x=gpx, y=gpy, dist=gdist, street=street)
+                        break
             if best is None:
                 return dict(out, route=[], path=None)
             route = head + list(best.edges)

@@ -583,6 +583,19 @@ def test_live_controls_refuse_bad_input_and_a_refused_goal_keeps_the_current_one
         with pytest.raises(InputError, match="latitude"):
             sim.set_goal(95.0, 24.9)
         assert sim.goal_xy == goal
+        # a goal beyond the built world says so (it said "goal is 1334 m from the nearest road"
+        # where SUMO's network reached on beyond the world)
+        with pytest.raises(InputError, match=r"^goal \(60\.30000, 25\.20000\) is .*outside"):
+            sim.set_goal(60.30, 25.20)
+        (x0, y0, x1, y1), ((nx0, ny0), (nx1, ny1)) = sim.world.loaded_extent(), sim.traffic.sumo.simulation.getNetBoundary()
+        # (a corner of SUMO's network beyond the world, away from its roads)
+        corners = [(cx, cy) for cx in (nx0 + 5, nx1 - 5) for cy in (ny0 + 5, ny1 - 5)
+                   if not (x0 <= cx <= x1 and y0 <= cy <= y1) and sim.traffic.snap_lane(cx, cy)[5] > 60.0]
+        assert corners, "no corner of the network outside the world and away from its roads"
+        lon, lat = sim.world.frame.to_lonlat(*corners[0])
+        with pytest.raises(InputError, match=r"is outside the world, 0\.\d km from its centre .*--chunks"):
+            sim.set_goal(float(lat), float(lon))
+        assert sim.goal_xy == goal
         for w, h in ((-5, 10), (0, 0), (64, 10**6), (64.5, 48)):
             with pytest.raises(InputError, match="camera image (width|height) must be a whole number of pixels"):
                 sim.camera_image(w, h)
@@ -600,6 +613,43 @@ def test_live_controls_refuse_bad_input_and_a_refused_goal_keeps_the_current_one
         for _ in range(20):
             sim.step()
         assert "goal" not in sim.finish().line()
+    finally:
+        sim.teardown()
+
+
+def test_a_goal_on_a_road_the_car_cannot_reach_takes_the_nearest_one_it_can(helsinki):
+    """Where the OSM extract ends, a road entering the area has no road before it: a goal
+    on it was "goal unreachable" though a road the car reaches ran beside it. The goal now
+    takes the nearest road within the snap distance that the car can reach."""
+    from cosim.driving import _lane_allows, is_tunnel
+
+    sim = start_sim(helsinki, start=HEL_MID, duration_s=60)
+    try:
+        s = sim.traffic.sumo
+        lanes = [ln for ln in s.lane.getIDList() if not ln.startswith(":")]
+        entered = {link[0].rsplit("_", 1)[0] for ln in s.lane.getIDList() for link in s.lane.getLinks(ln)}
+        sources = sorted({ln.rsplit("_", 1)[0] for ln in lanes} - entered)
+        tried = 0
+        for e in sources:
+            lane = next((f"{e}_{i}" for i in range(s.edge.getLaneNumber(e)) if _lane_allows(s, f"{e}_{i}", "passenger")),
+                        None)
+            if lane is None or s.lane.getLength(lane) < 10 or is_tunnel(s, e):
+                continue
+            P = np.array(s.lane.getShape(lane))
+            x, y = P[len(P) // 2] if len(P) > 2 else P.mean(axis=0)
+            if sim.traffic.snap_lane(float(x), float(y))[0].rsplit("_", 1)[0] != e:
+                continue                    # (another road is nearer: not the case)
+            near = [ln for d, ln in sim.traffic._lanes_near(float(x), float(y), 40.0) if ln.rsplit("_", 1)[0] != e]
+            if not near:
+                continue
+            tried += 1
+            lon, lat = sim.world.frame.to_lonlat(float(x), float(y))
+            info = sim.set_goal(float(lat), float(lon))
+            assert 0 < info["goal_snap_m"] <= 50.0 and sim.route and sim.route[-1] != e, (e, info)
+            assert sim.goal_xy is not None
+            if tried >= 3:
+                break
+        assert tried >= 1, "no road entering the extract with a reachable road beside it"
     finally:
         sim.teardown()
 
