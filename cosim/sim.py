@@ -39,6 +39,8 @@ log = logging.getLogger("cosim.sim")
 #: the windscreen of models/car, whose cabin ends 1.05 m ahead of the centre, above its 0.95 m bonnet)
 DRIVER_CAMERA = (1.1, 1.4)
 MAX_CAMERA_PX = 4096     # camera_image: width and height at most this
+HELD_THROTTLE = 0.3      # _check_held: the throttle at least this, the car still, no brake
+HELD_WARN_S = 10.0       # a stretch this long is said (and the summary line reports the time)
 
 
 def _number(value, what: str) -> float:
@@ -97,6 +99,8 @@ class Summary:
     sumo_restarts: int = 0           # SUMO's worker process crashed and was started again
     lifted_out: int = 0              # the car set on top of a replaced tile's higher ground (_lift_out)
     other_ways: int = 0              # routes taken on from the car's own lane after a lane change never came
+    held_s: float = 0.0              # time the car stood still with the throttle on (something held it)
+    held_longest_s: float = 0.0      # the longest such stretch
     frame_ms_median: float = 0.0
     frame_ms_p999: float = 0.0
     frame_ms_max: float = 0.0
@@ -119,6 +123,8 @@ class Summary:
                    f"{self.other_ways} time(s)" if self.other_ways else "")
                 + (f"; vehicles taken out after a standoff with the ego {self.standoffs_released}"
                    if self.standoffs_released else "")
+                + (f"; the car stood still with the throttle on for {self.held_s:.0f} s (longest {self.held_longest_s:.0f} s)"
+                   if self.held_longest_s >= HELD_WARN_S else "")
                 + f".{arr}")
 
 
@@ -189,6 +195,8 @@ class Simulation:
         self._setup_done = False
         self._gc_frozen = False
         self._lost_before_restart = 0      # swap_actors_lost of SUMOs restarted after a crash
+        self._held_s = 0.0                 # standing with the throttle on, this stretch (_check_held)
+        self._held_said = False
 
     # ------------------------------------------------------------------------------------
     def setup(self) -> "Simulation":
@@ -536,6 +544,7 @@ class Simulation:
         self.vehicle.apply_control(throttle, brake, steer)
         self.vehicle.step(self.substeps)
         self._check_collisions()
+        self._check_held(st, throttle, brake)
         # route bookkeeping (not while SUMO swaps networks: the route is planned anew then)
         swapping = self._swap_next is not None or self._swap_adopting is not None
         if self.manual is None and abs(st.speed) < 0.1 and getattr(self.driver, "reason", "") == "lane change":
@@ -694,6 +703,26 @@ class Simulation:
             self.summary.lifted_out += 1
             log.warning("t=%.1f s: the ground under the car came up %.2f m with a new tile; the car was "
                         "set on top of it", self.t, rise)
+
+    def _check_held(self, st, throttle: float, brake: float) -> None:
+        """Time the car stands still with the throttle on and no brake: something holds it (a
+        step in the road, a body it pushes against). Counted for the summary, and said once a
+        stretch passes HELD_WARN_S (a Portland car stood 1,071 s against a bridge deck's edge,
+        and nothing said so)."""
+        if abs(st.speed) < 0.1 and throttle >= HELD_THROTTLE and brake == 0.0:
+            self._held_s += self.cfg.step_length_s
+            s = self.summary
+            s.held_s = round(s.held_s + self.cfg.step_length_s, 3)
+            s.held_longest_s = round(max(s.held_longest_s, self._held_s), 3)
+            if self._held_s >= HELD_WARN_S and not self._held_said:
+                self._held_said = True
+                lane = self.path.driven_lane(self._path_idx) if self.path is not None else ""
+                log.warning("t=%.1f s: the car has stood still with the throttle at %.0f%% for %.0f s at "
+                            "(%.1f, %.1f) on lane %s: something holds it", self.t, throttle * 100.0,
+                            self._held_s, st.x, st.y, lane)
+        else:
+            self._held_s = 0.0
+            self._held_said = False
 
     def _check_collisions(self):
         """Count and log the ego's collisions: a chassis contact with a mirrored actor, or a

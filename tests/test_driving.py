@@ -654,6 +654,35 @@ def test_a_goal_on_a_road_the_car_cannot_reach_takes_the_nearest_one_it_can(hels
         sim.teardown()
 
 
+def test_a_car_held_still_with_the_throttle_on_is_reported(helsinki, caplog):
+    """A car that stands with the throttle on and no brake is held by something (a Portland
+    car stood 1,071 s against a bridge deck's edge, the summary silent): said once in the log
+    after 10 s, and the summary line gives the time. Here a wall of PyBullet's in front of it."""
+    import pybullet as pb
+
+    sim = start_sim(helsinki, start=HEL_MID, duration_s=60)
+    try:
+        for _ in range(5):
+            sim.step()
+        st = sim.vehicle.state()
+        c, sn = math.cos(st.yaw), math.sin(st.yaw)
+        cid = sim.physics.client
+        wall = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[0.5, 3.0, 2.0], physicsClientId=cid)
+        pb.createMultiBody(0, wall, basePosition=[st.x + 4.0 * c, st.y + 4.0 * sn, st.z + 1.5],
+                           baseOrientation=pb.getQuaternionFromEuler((0, 0, st.yaw)), physicsClientId=cid)
+        sim.set_manual((0.8, 0.0, 0.0))
+        with caplog.at_level(logging.WARNING, logger="cosim"):
+            for _ in range(160):
+                sim.step()
+        said = [r.getMessage() for r in caplog.records if "stood still with the throttle" in r.getMessage()]
+        summary = sim.finish()
+    finally:
+        sim.teardown()
+    assert len(said) == 1 and "something holds it" in said[0], said
+    assert summary.held_longest_s >= 10.0 and summary.held_s >= summary.held_longest_s
+    assert "the car stood still with the throttle on for" in summary.line()
+
+
 def test_a_simulation_leaves_its_config_alone_and_sets_up_afresh_after_a_teardown(helsinki):
     """``set_speed`` and ``set_goal`` change the run, not the caller's SimConfig (a second
     Simulation made from it started at the first one's last speed and goal); ``setup()`` after
