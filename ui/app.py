@@ -577,7 +577,7 @@ class MainWindow(QMainWindow):
         th, br, st = f["control"]
         self.live["mode"].setText("manual (keys)" if f["manual"] else "automatic")
         self.live["control"].setText(f"throttle {th:.0%} · brake {br:.0%}")
-        self.live["steer"].setText(f"{abs(st):.0%} {'left' if st > 0 else 'right' if st < 0 else ''}".rstrip())
+        self.live["steer"].setText("straight" if abs(st) < 0.005 else f"{abs(st):.0%} {'left' if st > 0 else 'right'}")
         if f.get("arrived"):
             self.live["route"].setText("arrived at the destination")
         elif f.get("route_left") is not None:
