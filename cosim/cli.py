@@ -11,7 +11,7 @@ import os
 import sys
 import time
 
-from netgen.errors import CosimError
+from netgen.errors import CosimError, InputError
 
 
 #: where each stage of a world build starts and ends on the progress bar (its share of a typical
@@ -198,6 +198,15 @@ def sim_config_from_args(a):
         if not a.world:
             cfg.world = world_config_from_args(a)
     if a.world:
+        # (they were ignored: `--world W --center LAT,LON` started at the world's centre)
+        given = [f"--{k.replace('_', '-')}" for k in ("preset", "osm", "bbox", "center", "chunks", "chunk_size",
+                                                      "quality", "terrain_spacing", "dem", "elevation", "flat",
+                                                      "overpass_url", "timeout", "out")
+                 if getattr(a, k, None) is not None]
+        if given:
+            hint = " (to start elsewhere in it: --start LAT,LON)" if "--center" in given else ""
+            raise InputError(f"--world runs a world as it was built: {', '.join(given)} cannot change it{hint}; "
+                             "to build another, give the place instead of --world")
         cfg.world_dir = a.world
     for k_arg, k_cfg in (("duration", "duration_s"), ("speed", "speed_mps"), ("traffic", "traffic"),
                          ("seed", "seed"), ("telemetry", "telemetry"), ("sensor_range", "sensor_range_m"),

@@ -105,6 +105,9 @@ class SimConfig:
             # (SUMO takes 0.001..10 s, but the ego's pose goes into SUMO once a step: a step
             # of seconds lets SUMO's drivers see the car jump)
             raise InputError(f"step length {self.step_length_s} s is out of range (0.01..1)")
+        if float(self.duration_s) < float(self.step_length_s) - 1e-9:
+            # (a 0.05 s run made no step and printed a summary of zeros)
+            raise InputError(f"duration {self.duration_s} s is shorter than one step ({self.step_length_s} s)")
         if self.physics_hz is not None and not 50 <= float(self.physics_hz) <= 1000:
             # (the car's tyre model is validated from 100 Hz: models/car/README.md)
             raise InputError(f"physics rate {self.physics_hz} Hz is out of range (50..1000)")

@@ -1911,6 +1911,18 @@ def test_cli_usage_mistakes_are_one_line(tmp_path):
         lines = r.stderr.strip().splitlines()
         assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith(says), (args, r.stderr)
         assert lines[0].endswith("--help)") and r.stdout == ""
+    # options a built world ignored (`--world W --center ...` started at the world's centre), and
+    # a run shorter than one step (no step, a summary of zeros): one line each, exit code 2
+    for args, says in ((["run", "--world", str(tmp_path), "--center", "60.17,24.94"],
+                        "error: --world runs a world as it was built: --center cannot change it (to start "
+                        "elsewhere in it: --start LAT,LON); to build another, give the place instead of --world"),
+                       (["run", "--world", str(tmp_path), "--chunks", "2", "--dem", "x.hgt"],
+                        "error: --world runs a world as it was built: --chunks, --dem cannot change it; "
+                        "to build another, give the place instead of --world"),
+                       (["run", "--preset", "kouvola", "--duration", "0.05"],
+                        "error: duration 0.05 s is shorter than one step (0.1 s)")):
+        r = subprocess.run(CLI + args, cwd=tmp_path, capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2 and r.stderr.strip().splitlines() == [says], (args, r.stderr)
 
 
 def test_the_build_progress_bar_fills_through_the_stages_and_the_report_reads_well(tmp_path):
