@@ -1410,7 +1410,7 @@ class SumoTraffic(Component):
         except self._exc as e:
             raise SimulationError(f"no road for cars near ({x:.0f}, {y:.0f}) m: {e}") from None
         lane = f"{edge}_{idx}"
-        from .driving import _lane_allows, is_tunnel
+        from .driving import is_tunnel
 
         guard = 0
         while lane.startswith(":") and guard < 5:
@@ -1422,20 +1422,16 @@ class SumoTraffic(Component):
         # onto a junction lane went on into a tunnel, and the car drove on bare terrain)
         if is_tunnel(s, lane.rsplit("_", 1)[0]):
             # the world has no tunnels: the nearest lane on the surface instead
-            best = None
-            for ln in s.lane.getIDList():
-                if ln.startswith(":") or is_tunnel(s, ln.rsplit("_", 1)[0]) or not _lane_allows(s, ln, vclass):
-                    continue
-                P = np.asarray(s.lane.getShape(ln), dtype=float)
-                if len(P) < 2:
-                    continue
-                d = _polyline_distance(P, x, y)
-                if best is None or d < best[0]:
-                    best = (d, ln)
-            if best is not None:
-                lane = best[1]
+            nearest = self._lanes_near(x, y, math.inf, vclass, most=1)
+            if nearest:
+                lane = nearest[0][1]
                 pos = self.lane_pos(lane, x, y)
-        shape = np.array(s.lane.getShape(lane))
+        return self._lane_point(lane, pos, x, y)
+
+    def _lane_point(self, lane: str, pos: float, x: float, y: float) -> tuple:
+        """:meth:`snap_lane`'s answer for ``lane`` at ``pos`` (clamped to the lane), asked
+        from (x, y)."""
+        shape = np.array(self._sim.lane.getShape(lane), dtype=float)
         d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(shape, axis=0).T))])
         pos = min(max(pos, 0.0), d[-1])
         k = min(max(int(np.searchsorted(d, pos)), 1), len(shape) - 1)
@@ -1476,17 +1472,6 @@ class SumoTraffic(Component):
                     and not is_tunnel(s, edge):
                 found[edge] = (d, ln)
         return sorted(found.values())[:most]
-
-    def _point_on(self, lane: str, x: float, y: float) -> tuple:
-        """As :meth:`snap_lane` answers, for a given ``lane``."""
-        pos = self.lane_pos(lane, x, y)
-        shape = np.array(self._sim.lane.getShape(lane), dtype=float)
-        d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(shape, axis=0).T))])
-        k = min(max(int(np.searchsorted(d, pos)), 1), len(shape) - 1)
-        t = (pos - d[k - 1]) / max(d[k] - d[k - 1], 1e-9)
-        px, py = shape[k - 1] + t * (shape[k] - shape[k - 1])
-        yaw = math.atan2(shape[k, 1] - shape[k - 1, 1], shape[k, 0] - shape[k - 1, 0])
-        return lane, float(pos), float(px), float(py), yaw, math.hypot(px - x, py - y)
 
     def lane_pos(self, lane: str, x: float, y: float) -> float:
         """Position along ``lane`` of the point of it nearest to (x, y)."""
@@ -1794,7 +1779,8 @@ class SumoTraffic(Component):
                         continue
                     best = self._route_from(firsts, ln.rsplit("_", 1)[0])
                     if best is not None:
-                        glane, gpos, gpx, gpy, _, gdist = self._point_on(ln, float(goal_xy[0]), float(goal_xy[1]))
+                        gx, gy = float(goal_xy[0]), float(goal_xy[1])
+                        glane, gpos, gpx, gpy, _, gdist = self._lane_point(ln, self.lane_pos(ln, gx, gy), gx, gy)
                         try:
                             street = s.edge.getStreetName(ln.rsplit("_", 1)[0])
                         except self._exc:
