@@ -297,10 +297,11 @@ def _generate_demand(net_file, out_dir, density, seed, duration, prefill, timeou
         jobs = {}
         # a density so low that not one trip falls in the run is no traffic (as 0): randomTrips
         # found none, and the run stopped with "no routable vehicle trips"
-        if 0 < plan.vehicles and _trips_expected(plan.vehicle_period, plan.vehicle_trip_s, duration, prefill) < 1.0:
+        too_few = _trips_expected(plan.vehicle_period, plan.vehicle_trip_s, duration, prefill) < 1.0
+        if plan.vehicles > 0 and too_few:
             log.info("demand: %g vehicles per km2 give less than one trip in %.0f s: no traffic",
                      plan.vehicles_per_km2, duration)
-        if plan.vehicles > 0 and _trips_expected(plan.vehicle_period, plan.vehicle_trip_s, duration, prefill) >= 1.0:
+        if plan.vehicles > 0 and not too_few:
             jobs["veh"] = _start_random_trips(net_file, tmp, "veh", plan.vehicle_period,
                                               plan.vehicle_trip_s, duration, seed, prefill,
                                               persons=False)

@@ -52,9 +52,9 @@ Episodes
     ``config.duration_s / step``). ``reset(seed=N)`` starts the simulation afresh with that
     seed: the same seed gives the same episode, step for step, for the same actions (as
     Gymnasium's ``check_env`` asks). ``reset()`` without a seed puts the car back at the start
-    in the running simulation (fast: SUMO's traffic goes on from where it was). ``info`` carries ``autopilot_action`` (what the autopilot
-    would do now: for imitation or as a baseline), the ego state, the step's reward terms and
-    the simulation's summary at the end.
+    in the running simulation (fast: SUMO's traffic goes on from where it was). ``info``
+    carries ``autopilot_action`` (what the autopilot would do now: for imitation or as a
+    baseline), the ego state, the step's reward terms and the simulation's summary at the end.
 """
 from __future__ import annotations
 
