@@ -1440,6 +1440,16 @@ class SumoTraffic(Component):
         yaw = math.atan2(shape[k, 1] - shape[k - 1, 1], shape[k, 0] - shape[k - 1, 0])
         return lane, float(pos), float(px), float(py), yaw, math.hypot(px - x, py - y)
 
+    def _goal_at(self, snapped: tuple) -> dict:
+        """A goal's answer in ``plan_route`` from a point on a lane (:meth:`_lane_point`'s
+        tuple): lane, position, point, distance and street name."""
+        lane, pos, x, y, _, dist = snapped
+        try:
+            street = self._sim.edge.getStreetName(lane.rsplit("_", 1)[0])
+        except self._exc:
+            street = ""
+        return dict(lane=lane, pos=pos, x=x, y=y, dist=dist, street=street)
+
     def _route_from(self, firsts, to_edge: str):
         """SUMO's fastest route from one of the edges ``firsts`` to ``to_edge``, or None."""
         best = None
@@ -1759,12 +1769,9 @@ class SumoTraffic(Component):
         head = [edge] if keep_lane else []
         out = _plan(lane, pos, rng_state)
         if goal_xy is not None:
-            glane, gpos, gpx, gpy, _, gdist = self.snap_lane(float(goal_xy[0]), float(goal_xy[1]))
-            try:
-                street = s.edge.getStreetName(glane.rsplit("_", 1)[0])
-            except self._exc:
-                street = ""
-            out["goal"] = dict(lane=glane, pos=gpos, x=gpx, y=gpy, dist=gdist, street=street)
+            gx, gy = float(goal_xy[0]), float(goal_xy[1])
+            out["goal"] = self._goal_at(self.snap_lane(gx, gy))
+            glane, gdist = out["goal"]["lane"], out["goal"]["dist"]
             if gdist > max_goal_snap_m:
                 if not beyond_ok:
                     return dict(out, route=[], path=None)
@@ -1774,18 +1781,12 @@ class SumoTraffic(Component):
                 # the nearest road does not lead there (cut off where the OSM extract ends, say:
                 # "goal unreachable" though a road the car reaches lay 50 m off): the nearest
                 # one within the snap distance that it does reach
-                for d, ln in self._lanes_near(float(goal_xy[0]), float(goal_xy[1]), max_goal_snap_m):
+                for d, ln in self._lanes_near(gx, gy, max_goal_snap_m):
                     if ln.rsplit("_", 1)[0] == glane.rsplit("_", 1)[0]:
                         continue
                     best = self._route_from(firsts, ln.rsplit("_", 1)[0])
                     if best is not None:
-                        gx, gy = float(goal_xy[0]), float(goal_xy[1])
-                        glane, gpos, gpx, gpy, _, gdist = self._lane_point(ln, self.lane_pos(ln, gx, gy), gx, gy)
-                        try:
-                            street = s.edge.getStreetName(ln.rsplit("_", 1)[0])
-                        except self._exc:
-                            street = ""
-                        out["goal"] = dict(lane=glane, pos=gpos, x=gpx, y=gpy, dist=gdist, street=street)
+                        out["goal"] = self._goal_at(self._lane_point(ln, self.lane_pos(ln, gx, gy), gx, gy))
                         break
             if best is None:
                 return dict(out, route=[], path=None)
