@@ -331,13 +331,16 @@ def make_parser() -> argparse.ArgumentParser:
                        description="Build (or reuse) a world and drive the physics car through SUMO traffic. "
                                    "With no place given, runs the default preset.")
     r.add_argument("scenario", nargs="?", help="scenario TOML file (see scenarios/)")
-    r.add_argument("--world", metavar="DIR", help="an already built world folder")
+    r.add_argument("--world", metavar="DIR", help="an already built world folder, run as it was built (the place "
+                   "and build options are then an error; --start LAT,LON starts elsewhere in it)")
     add_place_args(r)
     g = r.add_argument_group("run")
     g.add_argument("--duration", type=float, metavar="S", help="simulated seconds (default 60)")
     g.add_argument("--speed", type=float, metavar="MPS", help="the ego's set speed in m/s (default 10)")
-    g.add_argument("--traffic", metavar="DENSITY", help="none | light | normal | dense | vehicles per km2")
-    g.add_argument("--seed", type=int, help="random seed, 0..2147483647: the same seed (world and --parallel-sumo) repeats the run")
+    g.add_argument("--traffic", metavar="DENSITY", help="none | light | normal | dense | vehicles per km2 of the network "
+                   "within the world")
+    g.add_argument("--seed", type=int, help="random seed, 0..2147483647: the same seed (world, --duration and "
+                   "--parallel-sumo) repeats the run")
     g.add_argument("--swap-when-ready", action="store_true",
                    help="swap to the next window as soon as it is built, not at a fixed simulated time "
                         "after its build started (never waits for a build; the run is not repeatable)")
