@@ -493,20 +493,31 @@ class Simulation:
                 log.info("no route on the new network after SUMO's restart: %s", e)
         self._restart_notes.append(f"SUMO's worker process crashed at t={self.t:.1f} s and was started again")
 
+    def _pose_for_sumo(self, st) -> tuple[float, float, float, float]:
+        """The ego's pose for SUMO's next step: the car's at that step's end. SUMO moves its
+        drivers to the end of the step it is asked for while the physics takes the car there,
+        so the pose the car has now put the ego in SUMO one step behind its traffic (2.5 m at
+        25 m/s): SUMO's drivers took their gaps to the car (changing lanes in front of it, at
+        junctions) and the driver took SUMO's leader gap that much too long. The car's velocity
+        and yaw rate carry it one step on."""
+        dt = self.cfg.step_length_s
+        vx, vy = st.velocity[0], st.velocity[1]
+        return (st.x + vx * dt, st.y + vy * dt, st.yaw + st.yaw_rate * dt, max(0.0, st.speed))
+
     def _step(self) -> EgoState:
         t0 = time.perf_counter()
         cfg = self.cfg
         st = self.vehicle.state()
         pipelined = self._pipelined
+        pose = self._pose_for_sumo(st)
         if not pipelined:
-            self.traffic.set_ego_pose(st.x, st.y, st.yaw, max(0.0, st.speed))
+            self.traffic.set_ego_pose(*pose)
             self.traffic.step()
             snap = self.traffic.actors_near(st.x, st.y, cfg.mirror_radius_m)
         else:
             # SUMO's state after the step sent in the previous frame (waits for it, if it is
             # not done yet); then SUMO's next step starts in its worker process and runs
             # while the driver (on this state: lagged_reads) and the physics below run
-            pose = (st.x, st.y, st.yaw, max(0.0, st.speed))
             snap = None
             if self._swap_adopting is None and self._swap_next is None:
                 # (the same requests in the same order, the next step sent first)
