@@ -100,7 +100,14 @@ def _forward_points(P: np.ndarray, *, runs: bool = True) -> np.ndarray:
     distance: a zig-zag, not a turn. Mikonkatu in Helsinki has three signal nodes within 6 m
     whose junctions overlap; each 0.2 m edge begins 2.2 m behind the end of the one before,
     and the step through them read as a turn the car could not make (19.8 m wide at full
-    lock): every route on from Mikonkatu was refused, and the default run stood there.
+    lock): every route on from Mikonkatu was refused, and the default run stood there. The
+    chain comes forward where it crosses the line through the last point kept, across the way
+    to it, within BACKSTEP_FAR_M of that point; the first point ahead may lie further on (a
+    turn's check takes lanes as SUMO draws them, not resampled: Monaco's Avenue Princesse
+    Grace at junction 21918939 steps 2.3 m back, then on along one 14 m segment, and read as
+    a straight turn 20 m wider than the car's lock; the only way by the streets from the
+    west of Monaco to the east was refused, and the route went through Tunnel de la Colle,
+    which the world does not have).
 
     ``runs`` False: the rule point by point, without taking runs of forward steps whole (the
     same points: the tests' reference)."""
@@ -140,16 +147,22 @@ def _forward_points(P: np.ndarray, *, runs: bool = True) -> np.ndarray:
                     keep[i] = False
                     i += 1
                     continue
-                # a zig-zag: back, then forward past the last point kept, all near it
+                # a zig-zag: back, then forward past the last point kept, all near it (where
+                # the chain crosses back over the line through that point across its way: the
+                # point after may be far on, the end of a lane's one long segment)
                 j = i
                 while j < n and (P[j] - P[last]) @ (P[j] - P[last]) < BACKSTEP_FAR_M ** 2 \
                         and (P[j] - P[last]) @ u <= 0.0:
                     j += 1
-                if j < n and j > i and (P[j] - P[last]) @ u > 0.0 \
-                        and (P[j] - P[last]) @ (P[j] - P[last]) < BACKSTEP_FAR_M ** 2:
-                    keep[i:j] = False
-                    i = j
-                    continue
+                if j < n and j > i:
+                    b = (P[j] - P[last]) @ u
+                    if b > 0.0:
+                        a = (P[j - 1] - P[last]) @ u
+                        x = P[j - 1] + (P[j] - P[j - 1]) * (-a / (b - a)) - P[last]
+                        if x @ x < BACKSTEP_FAR_M ** 2:
+                            keep[i:j] = False
+                            i = j
+                            continue
         prev, last = last, i
         i += 1
     return keep
@@ -712,6 +725,7 @@ def without_turnarounds_steps(sim, edges: list[str]):
     """:func:`without_turnarounds`, yielding in its searches (:data:`SEARCH_PIECE`)."""
     out = [edges[0]] if edges else []
     detours = []
+    whole_tried = False
     i = 1
     mark = _TURN_WORK[0]
     while i < len(edges):
@@ -750,6 +764,19 @@ def without_turnarounds_steps(sim, edges: list[str]):
                     out.extend(alt[1:])
                     detours.append((cur, edges[-1], len(alt) - 2))
                     break
+                if not whole_tried and out[0] != cur:
+                    # none from there (a one-way street on into the tunnel): the whole route
+                    # from its first edge, where the car's router has a way (Monaco: SUMO's
+                    # route from Avenue d'Ostende took Boulevard Louis II into its tunnel, whose
+                    # way in leads only into it; the streets' way turns off at Rond-Point
+                    # Sainte-Dévote, before)
+                    whole_tried = True
+                    alt = yield from _route_steps(sim, out[0], edges[-1])
+                    if alt and len(alt) >= 2 and not (yield from undrivable_steps_steps(sim, alt)):
+                        del out[1:]
+                        out.extend(alt[1:])
+                        detours[:] = [(alt[0], edges[-1], len(alt) - 2)]
+                        break
         out.append(nxt)
         i += 1
     return out, detours

@@ -38,6 +38,8 @@ HEL_OFF_ROAD = (60.174039, 24.945603)          # 137 m from the nearest road for
 PDX_START, PDX_GOAL = (45.530676, -122.694569), (45.531742, -122.694608)
 # Monaco: 4229539 -> 4229537#0/#1: down about -25 %, then up about +19 % (SRTM terrain)
 MC_START, MC_GOAL = (43.738822, 7.424690), (43.738369, 7.424390)
+# Monaco: from Allée Guillaume Apollinaire (159170444) east to Avenue Princesse Grace (503462465#0)
+MC_WEST, MC_PRINCESSE_GRACE = (43.735163, 7.419143), (43.741633, 7.430513)
 
 
 @pytest.fixture(scope="module")
@@ -1175,6 +1177,56 @@ def test_a_zigzag_through_overlapping_junctions_is_no_turn(helsinki):
         assert not _turnaround(s, "127810493#1", "127810493#2", "127810493#3")
         at, more, _ = sim.traffic.random_extension(["127810490#1"], 0, random.Random(0).getstate())
         assert at == 0 and more[0] == "127810490#1" and len(more) > 5, more
+    finally:
+        sim.teardown()
+
+
+def test_a_zigzag_ending_in_a_long_segment_is_no_turn(monaco):
+    """Monaco, Avenue Princesse Grace at junction 21918939: netconvert left edge 161733902
+    0.2 m long and 2.3 m beyond the junction after it, so the link onward steps 2.3 m back,
+    then goes on along the next lane's one 14 m segment. The zig-zag rule wanted a point
+    ahead within 5 m and found none (a turn's check takes the lanes' points as SUMO draws
+    them), and the straight link read as a turn 20 m wider than the car's full lock. It is
+    the one way by the streets from the west of Monaco to the east: routes kept SUMO's way
+    through the tunnels, which the world does not have (``cosim run`` from 43.73234,7.41781
+    to 43.74797,7.43496: the car drove into Tunnel de la Colle's portal and stood before a
+    bench on the ground above it, "lead static", 99 m in 600 s). The chain that crosses back
+    over the line through the last point kept, within 5 m of it, ends the zig-zag there. Here
+    SUMO's route crosses Monaco through nine tunnel edges; the car's goes by the streets and
+    arrives (before: 150 m driven in 400 s). A route into a tunnel whose way in leads only
+    into it is routed again from its start where there is no way round from the tunnel's
+    mouth."""
+    from cosim.driving import (TURN_DEVIATION_MAX_M, _forward_points, _link_deviation, car_turn_radius, is_tunnel,
+                               turn_deviation, undrivable_steps, without_turnarounds)
+
+    # the lanes as SUMO draws them: 0.2 m, back 2.3 m, then one segment of 10 m on
+    zig = np.array([[0.0, -10.0], [0.0, 0.0], [0.0, 0.2], [-0.24, -2.06], [0.63, 7.76]])
+    assert _forward_points(zig).tolist() == [True, True, True, False, True]
+    assert _forward_points(zig, runs=False).tolist() == [True, True, True, False, True]
+    assert turn_deviation(zig, car_turn_radius()) <= TURN_DEVIATION_MAX_M
+    # back, then away to the side, never ahead of the point before: a turn, kept
+    side = np.array([[0.0, -10.0], [0.0, 0.0], [0.0, -3.0], [8.0, -3.0], [20.0, -3.0]])
+    assert _forward_points(side).all()
+    sim = start_sim(monaco, start=MC_WEST, goal=MC_PRINCESSE_GRACE, duration_s=400)
+    try:
+        s = sim.traffic.sumo
+        link = [lk for lk in s.lane.getLinks("161733902_1") if lk[0] == "503462465#0_1"][0]
+        assert _link_deviation(s, "161733902_1", link) <= TURN_DEVIATION_MAX_M
+        assert undrivable_steps(s, ["353889282", "161733902", "503462465#0"]) == []
+        route = list(s.simulation.findRoute("159170444", "503462465#0", vType="DEFAULT_VEHTYPE").edges)
+        assert len([e for e in route if is_tunnel(s, e)]) >= 5
+        assert not [e for e in sim.path.edges if is_tunnel(s, e)] and "161733902" in sim.path.edges
+        # from Avenue d'Ostende SUMO takes Boulevard Louis II's tunnel, whose way in leads only
+        # into it: the whole route by the car's router (the way round turns off before)
+        route = list(s.simulation.findRoute("4227272", "503462465#0", vType="DEFAULT_VEHTYPE").edges)
+        assert "4230891#0" in route
+        fixed, _ = without_turnarounds(s, route)
+        assert fixed[0] == route[0] and fixed[-1] == route[-1] and not [e for e in fixed if is_tunnel(s, e)]
+        tunnels = sim.world.tunnels
+        while sim.t < 400.0 and not sim.summary.arrived:
+            ego = sim.step()
+            assert ego.edge not in tunnels, (sim.t, ego.edge)
+        assert sim.summary.arrived, (sim.t, sim.summary.distance_m)
     finally:
         sim.teardown()
 
