@@ -108,6 +108,10 @@ DECK_CLEARANCE_M = 5.0
 DECK_THICKNESS_M = 0.4          # (its underside, drawn only)
 DECK_GRADE = 0.06
 DECK_MAX_GRADE = 0.08
+#: a deck put at grade on the junctions it crosses (_decks_onto_junctions) is no steeper than
+#: this between them and where it keeps its height (a steep ramp's grade; a short link over a
+#: street 1.3 m under it needs 9 %)
+DECK_AT_GRADE_MAX_GRADE = 0.12
 #: how far a sidewalk may reach into a vehicle lane of another road before that piece of it is
 #: left out (m)
 SIDEWALK_INTRUSION_M = 0.3
@@ -940,6 +944,115 @@ def _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, clearance) -> None:
             rz[i] = np.maximum(rz[i], np.minimum(env, cap))
 
 
+def _decks_onto_junctions(edges, ref_e, RP, rg, rs, rz, deck, hw, planes, junctions, skip=None,
+                          fixed=None) -> dict:
+    """A deck (:func:`_bridge_decks`) that lies over a junction of other roads, within a car's
+    height of its plane (:data:`CONFORM_MAX_M`) wherever they overlap, is at grade there: its
+    profile points whose cross-section (``hw`` either side, per profile) reaches
+    :data:`CONFORM_MIN_OVERLAP_M` into the polygon of a junction of another node go onto that
+    junction's plane, and the points between them and the profile's ends (which stay) move
+    linearly between their moves (``rz`` in place). A deck further apart from a junction
+    somewhere (risen over it, or a bridge over a valley) stays there, as do the profiles
+    ``skip`` marks (those :func:`_raise_decks` raised: a deck that clears a road is left as it
+    is). The points ``fixed`` marks (a mask: those that lie on or under a higher-ranked road,
+    :func:`_conform_to_higher_roads`, or over a road they clear) keep their height, as the ends
+    do and the points over a junction further than that below. ``junctions``: id -> polygon
+    ring; ``planes``: node -> plane.
+
+    Conforming makes a road under a deck that cannot rise take the deck's height, but a
+    junction's surface is its plane: Portland's Morrison Bridge (5520143, bridge=yes, layer 1)
+    starts 10 m east of SE Martin Luther King Blvd and runs over its junction 256196698,
+    straight at 12.3-12.4 m, where the junction's plane falls at 7 % to 11.0 m: the deck's lane
+    lay across MLK's lanes up to 1.27 m over the junction, and a car on MLK stood against its
+    edge (0.25 m) for the rest of a 1,800 s run. Returns per moved profile (number) the
+    junctions it was put on."""
+    out: dict = {}
+    if not planes or not junctions or not deck.any():
+        return out
+    pd = deck[rg] if skip is None else (deck & ~skip)[rg]
+    pd[np.r_[0, np.nonzero(rg[1:] != rg[:-1])[0] + 1]] = False        # (its ends stay)
+    pd[np.r_[np.nonzero(rg[1:] != rg[:-1])[0], len(rg) - 1]] = False
+    idx = np.flatnonzero(pd)
+    jid = [j for j in junctions if j in planes and len(junctions[j]) >= 3]
+    if not len(idx) or not jid:
+        return out
+    R, rgi = _concat([np.asarray(junctions[j], dtype=float)[:, :2] for j in jid])
+    polys = shapely.polygons(shapely.linearrings(R, indices=rgi))
+    g = rg[idx]
+    reach = np.maximum(hw[g] - CONFORM_MIN_OVERLAP_M, 0.0)
+    pts = shapely.points(RP[idx])
+    qi, ji = shapely.STRtree(polys).query(pts, predicate="dwithin", distance=float(reach.max()))
+    if not len(qi):
+        return out
+    ok = shapely.distance(pts[qi], polys[ji]) <= reach[qi]
+    qi, ji = qi[ok], ji[ok]
+    # (not the deck's own nodes: its ends are on their planes already)
+    own = np.array([jid[j] in (edges[int(ref_e[g[q]])].from_node, edges[int(ref_e[g[q]])].to_node)
+                    for q, j in zip(qi.tolist(), ji.tolist())], dtype=bool)
+    qi, ji = qi[~own], ji[~own]
+    if not len(qi):
+        return out
+    P = np.array([planes[jid[j]] for j in ji.tolist()])
+    Q = RP[idx[qi]]
+    dz = P[:, 2] + P[:, 3] * (Q[:, 0] - P[:, 0]) + P[:, 4] * (Q[:, 1] - P[:, 1]) - rz[idx[qi]]
+    # (a deck and a junction further apart than a car is tall somewhere: a bridge over it; one
+    # within a centimetre of it everywhere: on it already)
+    pair = g[qi] * len(jid) + ji
+    _, inv = np.unique(pair, return_inverse=True)
+    apart = np.zeros(inv.max() + 1)
+    np.maximum.at(apart, inv, np.abs(dz))
+    keep = (apart[inv] <= CONFORM_MAX_M) & (apart[inv] > 0.01)
+    # (and over a junction it clears, it keeps its height: coming down between the junctions it
+    # meets, the Morrison Bridge's deck went from 1.6-1.8 m over SE 2nd Avenue's to 0.9-1.2 m)
+    clear = np.zeros(len(rz), dtype=bool)
+    clear[idx[qi[apart[inv] > CONFORM_MAX_M]]] = True
+    fixed = clear if fixed is None else fixed | clear
+    qi, ji, dz = qi[keep], ji[keep], dz[keep]
+    if not len(qi):
+        return out
+    # between those points and the deck's ends and fixed points (which stay), the moves
+    # linearly: the deck runs straight between where it meets the ground and the roads it
+    # crosses at grade (faded back to its line over 15-20 m from each junction, the Morrison
+    # Bridge went up 0.8 m and down again between two junctions of the street under it, 30 m
+    # apart). Where that would make the deck steeper than DECK_AT_GRADE_MAX_GRADE (or than it
+    # was) between two points, the junction next to the steepest such place is left out for
+    # this deck, its points stay, and the rest is tried again (the Eastbank Freeway's off-ramp
+    # edge would have dropped 1 m in its first metre onto a street's junction 15 m from its
+    # node: the step stays, as before).
+    pq = idx[qi]
+    for q in np.unique(g[qi]).tolist():
+        a, b = np.searchsorted(rg, q), np.searchsorted(rg, q, side="right")
+        mine = g[qi] == q
+        p_, j_, d_ = pq[mine], ji[mine], dz[mine]
+        stay = np.unique(np.r_[a, a + np.flatnonzero(fixed[a:b]), b - 1])
+        free = ~np.isin(p_, stay)
+        p_, j_, d_ = p_[free], j_[free], d_[free]
+        ds = np.maximum(np.diff(rs[a:b]), 1e-6)
+        limit = np.maximum(np.abs(np.diff(rz[a:b])) / ds, DECK_AT_GRADE_MAX_GRADE) + 1e-6
+        while len(p_):
+            # (a point over two junctions: the smaller move; junctions that touch share one plane)
+            o = np.lexsort((np.abs(d_), p_))
+            first = np.r_[True, p_[o][1:] != p_[o][:-1]]
+            pp, dd = p_[o][first], d_[o][first]
+            kn = np.r_[stay, pp]
+            o = np.argsort(kn, kind="stable")
+            move = np.interp(rs[a:b], rs[kn[o]], np.r_[np.zeros(len(stay)), dd][o])
+            steep = np.abs(np.diff(rz[a:b] + move)) / ds > limit
+            if not steep.any():
+                rz[a:b] += move
+                out[q] = {jid[j] for j in np.unique(j_).tolist()}
+                break
+            k = a + int(np.argmax(np.where(steep, np.abs(np.diff(move)), -1.0)))
+            near = np.argmin(np.minimum(np.abs(p_ - k), np.abs(p_ - k - 1)))
+            keep = j_ != j_[near]
+            # (over the junction left out, the deck keeps its height: straight past it, it
+            # came down to 1.0-1.4 m over two of Portland's junctions that it was 0.5-0.6 m over)
+            stay = np.unique(np.r_[stay, p_[~keep]])
+            keep &= ~np.isin(p_, stay)
+            p_, j_, d_ = p_[keep], j_[keep], d_[keep]
+    return out
+
+
 def _junction_planes(edges, ref_e, RP, rg, rs, rtot, rz, half_width=None, junctions=None,
                      max_grade: float = JUNCTION_MAX_GRADE, grade_weight: float = 40.0, tie_weight: float = 3.0,
                      ridge: float = 0.5, planes_out: dict | None = None,
@@ -1117,7 +1230,18 @@ def _onto_own_plane(edges, lane_edge, C, cg, cz, tilt, unit_left, planes, juncti
     for j, pl in planes.items():
         if pl in by_plane and j in junctions and len(junctions[j]) >= 3:
             members.setdefault(pl, []).append(j)
-    jids = [j for js in members.values() for j in js]
+    return _lanes_onto_planes(C, cg, cz, tilt, unit_left, by_plane, members, junctions, reach, fade)
+
+
+def _lanes_onto_planes(C, cg, cz, tilt, unit_left, by_plane: dict, members: dict, junctions: dict,
+                       reach: float = OWN_PLANE_REACH_M, fade: float = OWN_PLANE_FADE_M, hold=None) -> int:
+    """For :func:`_onto_own_plane` and :func:`_deck_lanes_onto_junctions`: per plane (x0, y0,
+    z0, gx, gy), the points of the lanes ``by_plane[plane]`` within ``reach`` of the polygons
+    of the junctions ``members[plane]`` go onto it, with its slope across the lane, and those
+    further out fade back to their own height over ``fade`` m (``cz``, ``tilt`` in place);
+    ``hold`` (per point, 0..1): how much of its own height and slope a point keeps all the same.
+    Returns how many points moved more than 1 cm."""
+    jids = list(dict.fromkeys(j for js in members.values() for j in js))
     if not jids:
         return 0
     R, rgi = _concat([np.asarray(junctions[j], dtype=float)[:, :2] for j in jids])
@@ -1133,6 +1257,8 @@ def _onto_own_plane(edges, lane_edge, C, cg, cz, tilt, unit_left, planes, juncti
         P = shapely.points(C[pts])
         d = shapely.distance(np.array([poly[j] for j in js])[:, None], P[None, :]).min(axis=0)
         w = np.clip((d - reach) / fade, 0.0, 1.0)
+        if hold is not None:
+            w = w + hold[pts] * (1.0 - w)
         x0, y0, z0, gx, gy = pl
         zp = z0 + gx * (C[pts, 0] - x0) + gy * (C[pts, 1] - y0)
         new = zp + w * (cz[pts] - zp)
@@ -1141,6 +1267,43 @@ def _onto_own_plane(edges, lane_edge, C, cg, cz, tilt, unit_left, planes, juncti
         across = gx * unit_left[pts, 0] + gy * unit_left[pts, 1]
         tilt[pts] = across + w * (tilt[pts] - across)
     return moved
+
+
+def _deck_lanes_onto_junctions(edges, lane_edge, C, cg, cz, cs, ctot, tilt, unit_left, planes, junctions,
+                               at_grade: dict, reach: float = OWN_PLANE_REACH_M, fade: float = OWN_PLANE_FADE_M) -> int:
+    """The lanes of the decks :func:`_decks_onto_junctions` put on junctions' planes (``at_grade``:
+    edge number -> junction ids; the lanes of its opposite edge "-X" too, which share its
+    profile), lane by lane: their points within ``reach`` of those junctions' polygons lie on
+    the plane across their width too (the profile is one lane's; a lane beside it, level
+    across, stood off a plane tilted across the deck by the grade times its distance from
+    it), fading back over ``fade`` m (:func:`_lanes_onto_planes`); but a lane's ends stay on
+    their own nodes' planes (:func:`_ends_on_planes`), the move fading in over the same
+    :data:`END_FADE_M` (West Burnside's deck ended 0.3 m under the Burnside Bridge's, where
+    Naito Parkway's junction reached its end, and a car drove into the step). Returns how many
+    points moved more than 1 cm."""
+    if not at_grade or not len(C):
+        return 0
+    num = {e.id: k for k, e in enumerate(edges)}
+    jset: dict = {}
+    for e, js in at_grade.items():
+        eid = edges[e].id
+        for k in (e, num.get(eid[1:] if eid.startswith("-") else "-" + eid, -1)):
+            if k >= 0:
+                jset.setdefault(k, set()).update(js)
+    by_plane: dict = {}
+    members: dict = {}
+    for k in np.unique(cg).tolist():
+        for j in jset.get(int(lane_edge[k]), ()):
+            pl = planes.get(j)
+            if pl is None or j not in junctions or len(junctions[j]) < 3:
+                continue
+            by_plane.setdefault(pl, set()).add(k)
+            members.setdefault(pl, set()).add(j)
+    by_plane = {pl: sorted(ks) for pl, ks in by_plane.items()}
+    members = {pl: sorted(js) for pl, js in members.items()}
+    end_fade = np.maximum(np.minimum(END_FADE_M, 0.5 * ctot[cg]), 1e-6)
+    hold = np.clip(1.0 - np.minimum(cs, ctot[cg] - cs) / end_fade, 0.0, 1.0)
+    return _lanes_onto_planes(C, cg, cz, tilt, unit_left, by_plane, members, junctions, reach, fade, hold=hold)
 
 
 def _junction_clusters(junctions: dict, reach: float = 0.3, cluster_m: float = 40.0) -> dict:
@@ -1609,9 +1772,41 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     geo.planes = planes
 
     conformed = conform()
+    at_grade: dict = {}
     if deck.any():
+        before = rz.copy()
         _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, lambda idx, own_e, under_e: _deck_clearance(
             RP, idx, own_e, edge_hw[own_e], under_e, higher, lane_edge, onto_profile))
+        # a deck that stayed down over a junction of other roads is at grade there: on its
+        # plane, and the roads conformed under it follow it
+        raised = np.bincount(rg, np.abs(rz - before) > 1e-9, len(ref_e)) > 0
+        # (a deck keeps its height where it lies on or under a higher road, and where it
+        # clears a road under it by more than a car's height)
+        fixed = np.zeros(len(rz), dtype=bool)
+        if "pairs" in overlaps:
+            pi, _, B = overlaps["pairs"]
+            fixed[pi] = True
+            gB = group_of[B]
+            over = (gB >= 0) & deck[np.maximum(gB, 0)]
+            at, _ = _onto_profiles(RP, rg, np.arange(len(rz), dtype=float), RP[pi[over]], gB[over])
+            zd, _ = _onto_profiles(RP, rg, rz, RP[pi[over]], gB[over])
+            with np.errstate(invalid="ignore"):
+                at = at[np.isfinite(at) & (zd - rz[pi[over]] > CONFORM_MAX_M)]
+            fixed[np.floor(at).astype(np.int64)] = True
+            fixed[np.ceil(at).astype(np.int64)] = True
+        # (decks with vehicle lanes, over junctions where a road with vehicle lanes meets: a
+        # footbridge's or a path's piece off a carriageway's height is left out there, as
+        # sidewalks are, _sidewalks_off_other_roads)
+        car_nodes = {n for e, v in zip(edges, vehicle_edge) if v for n in (e.from_node, e.to_node)}
+        at_grade = _decks_onto_junctions(edges, ref_e, RP, rg, rs, rz, deck, edge_hw[ref_e], planes,
+                                         {j: r for j, r in jrings.items() if j in car_nodes},
+                                         skip=raised | ~vehicle_edge[ref_e], fixed=fixed)
+        if at_grade and "pairs" in overlaps:
+            pi, vi, B = overlaps["pairs"]
+            sel = np.isin(B, ref_e[list(at_grade)])
+            conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, RP, rg, rs, rz, ref_e[rg],
+                                                  edge_hw[ref_e[rg]], onto_profile,
+                                                  cache={"pairs": (pi[sel], vi[sel], B[sel])})
 
     # 2. lane centrelines, resampled, with heights from their edge's profile
     LP, lg = _concat([l.shape for l in lanes])
@@ -1660,6 +1855,8 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     unit_left = nrm / hw[:, None]
     tilt = _ends_on_planes(edges, lanes, lane_edge, C, cg, cz, cs, ctot, unit_left, planes)
     own_plane = _onto_own_plane(edges, lane_edge, C, cg, cz, tilt, unit_left, planes, jrings)
+    at_grade_points = _deck_lanes_onto_junctions(edges, lane_edge, C, cg, cz, cs, ctot, tilt, unit_left, planes,
+                                                 jrings, {int(ref_e[g]): js for g, js in at_grade.items()})
     side = np.array([l.pedestrian_only for l in lanes])
     rail = np.array([bool(l.allowed) and l.allowed <= RAIL_CLASSES for l in lanes])
     drive = np.array([l.drivable for l in lanes])
@@ -1998,6 +2195,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
                  "crossings_meshed": len(crossings),
                  "junction_ends_moved": ends_moved,
                  "points_conformed": conformed,
+                 "deck_profiles_at_grade": len(at_grade), "deck_lane_points_at_grade": at_grade_points,
                  "faces": int(sum(len(p.faces) for ps in geo.parts.values() for p in ps))}
     return geo
 

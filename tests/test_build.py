@@ -1309,6 +1309,100 @@ def test_portland_with_geotiff_and_voids(tmp_path):
     assert np.isfinite(z).all()
 
 
+
+def _decks_over_junctions(out: Path, w: dict, step: float = 0.25) -> dict:
+    """(bridge lane, junction) -> the heights of the lane's surface less the junction's,
+    every ``step`` m where a vehicle lane of a bridge (OSM bridge=*) lies over the surface of a
+    junction (read back from the world's asphalt tiles)."""
+    net = read_net(out / w["net_file"], internal=False)
+    decks = {ln.id for e in net.edges.values() if e.bridge for ln in e.lanes if ln.drivable}
+    lanes = [(n.split("/", 1)[1], g) for n, g in _tile_meshes(out, "asphalt", "lane/") if n.split("/", 1)[1] in decks]
+    juncs = [(n.split("/", 1)[1], g) for n, g in _junction_meshes(out)]
+
+    def top(mesh, P):
+        loc, ray, _ = mesh.ray.intersects_location(np.column_stack([P, np.full(len(P), 5000.0)]),
+                                                    np.tile([0.0, 0.0, -1.0], (len(P), 1)))
+        z = np.full(len(P), -np.inf)
+        np.maximum.at(z, ray, loc[:, 2])
+        return z
+
+    out_ = {}
+    for lid, lm in lanes:
+        for jid, jm in juncs:
+            lo = np.maximum(lm.bounds[0, :2], jm.bounds[0, :2])
+            hi = np.minimum(lm.bounds[1, :2], jm.bounds[1, :2])
+            if np.any(hi - lo < step):
+                continue
+            X, Y = np.meshgrid(np.arange(lo[0], hi[0], step), np.arange(lo[1], hi[1], step))
+            P = np.column_stack([X.ravel(), Y.ravel()])
+            a, b = top(lm, P), top(jm, P)
+            both = np.isfinite(a) & np.isfinite(b)
+            if both.any():
+                out_[(lid, jid)] = a[both] - b[both]
+    return out_
+
+
+def _bridge_lane_end_steps(out: Path, w: dict, d: float = 0.1) -> dict:
+    """(bridge lane, which end) -> the height of the road surface ``d`` m beyond the end of a
+    vehicle lane of a bridge (the surface there nearest the lane's) less the lane's own ``d`` m
+    before it."""
+    from cosim.world import World
+
+    net = read_net(out / w["net_file"], internal=False)
+    lanes = [ln for e in net.edges.values() if e.bridge and not e.tunnel for ln in e.lanes if ln.drivable]
+    keys, inside, beyond = [], [], []
+    for ln in lanes:
+        sh = ln.shape[:, :2]
+        for end, a, b in (("start", sh[0], sh[1]), ("end", sh[-1], sh[-2])):
+            u = (a - b) / max(float(np.hypot(*(a - b))), 1e-9)
+            keys.append((ln.id, end))
+            inside.append(a - d * u)
+            beyond.append(a + d * u)
+    world = World(out)
+    zi = _surface_heights(world, np.array(inside))
+    zb = _surface_heights(world, np.array(beyond))
+    return {k: min((z - a[-1] for z in b), key=abs) for k, a, b in zip(keys, zi, zb) if a and b}
+
+
+def test_a_deck_that_cannot_clear_a_junction_meets_it(tmp_path):
+    """Portland: the Morrison Bridge (way 5520143, bridge=yes, layer 1) starts 10 m east of SE
+    Martin Luther King Blvd and cannot rise to clear it within 8 %, so it crosses MLK, and the
+    junctions of SE Morrison Street under it, at grade. Conforming made the roads under it take
+    its height, but not the junctions: its deck lay straight at 12.3-12.4 m over MLK's junction
+    256196698, whose plane falls at 7 % to 11.0 m, up to 1.3 m over it, and a car on MLK stood
+    against the deck's edge for the rest of a 1,800 s run. A deck that lies over a junction
+    within a car's height of its plane now lies on it, and a car on MLK drives across; over a
+    junction it clears by more (SE 2nd Avenue's), it keeps its height, and a bridge's lanes still
+    end on the surface beyond them (West Burnside's deck ended 0.3 m under the Burnside Bridge's
+    once, where Naito Parkway's junction reached its end). (Nine chunks of 400 m: 1.2 km.)"""
+    from cosim.config import SimConfig
+    from cosim.sim import Simulation
+
+    osm = shared_file("osm/portland-central-2015.osm.pbf")
+    dem = shared_file("dem/portland-ned.tif")
+    out = tmp_path / "w"
+    w = build_world(WorldConfig(osm=str(osm), dem=[str(dem)], center=(45.52016, -122.66598), chunks=1,
+                                chunk_size_m=400.0, out=str(out), cache_dir=str(tmp_path / "cache")))
+    gaps = _decks_over_junctions(out, w)
+    # the deck over MLK's junction and over SE Morrison Street's two (before: 0.01-1.15 m,
+    # 1.06-1.26 m, 1.27 m over them)
+    for j in ("256196698", "2634623764", "40501877"):
+        g = gaps[("5520143_1", j)]
+        assert len(g) > 500 and np.abs(g).max() < 0.05, (j, len(g), np.abs(g).max())
+    # over SE 2nd Avenue's junction, 1.6-1.8 m, as before (not brought down towards it)
+    assert np.abs(gaps[("5520143_1", "40501872")]).min() > 1.55
+    ends = _bridge_lane_end_steps(out, w)
+    assert len(ends) > 100 and max(map(abs, ends.values())) < 0.1, max(ends.items(), key=lambda t: abs(t[1]))
+    # a car on MLK, southbound, 75 m before the junction, to 135 m beyond it
+    sim = Simulation(SimConfig(world_dir=str(out), traffic="none", seed=1, start=(45.51792, -122.661817),
+                               goal=(45.51603, -122.661818), speed_mps=10.0, duration_s=60)).setup()
+    sim.physics.load_budget_ms = 1e9           # tile loading independent of wall-clock time
+    try:
+        summary = sim.run()
+    finally:
+        sim.teardown()
+    assert summary.arrived and summary.held_longest_s < 2.0 and summary.ego_collisions == 0, summary.line()
+
 # ---------------------------------------------------------------------------------------
 def _cli(args, cwd, env_extra=None, timeout=300):
     env = dict(os.environ, **(env_extra or {}))
