@@ -51,23 +51,27 @@ from netgen.build import build_world  # noqa: E402
 from netgen.config import WorldConfig  # noqa: E402
 
 
-def sumo_alone_cmd(net, routes, seed) -> list:
-    """SUMO's command line for the yardstick, SUMO alone (also bench_sumo_gap.py's)."""
+def sumo_alone_cmd(net, routes, seed, lane_change_s=None) -> list:
+    """SUMO's command line for the yardstick, SUMO alone (also bench_sumo_gap.py's): the
+    co-simulation's own options (``SumoTraffic.setup``) that change what SUMO computes."""
+    from cosim.config import LANE_CHANGE_S
     from netgen.sumo_net import sumo_binary
 
+    lc = LANE_CHANGE_S if lane_change_s is None else lane_change_s
     return [sumo_binary("sumo"), "-n", str(net), "-r", ",".join(map(str, routes)), "--step-length", "0.1",
             "--seed", str(seed), "--no-step-log", "--no-warnings", "--collision.action", "warn",
-            "--collision.mingap-factor", "0", "--time-to-teleport", "120", "--ignore-route-errors"]
+            "--collision.mingap-factor", "0", "--time-to-teleport", "120", "--ignore-route-errors"] + \
+        (["--lanechange.duration", f"{lc:g}"] if lc > 0 else [])
 
 
-def _alone_main(conn, net, routes, seed, cpu=None):
+def _alone_main(conn, net, routes, seed, cpu=None, lane_change_s=None):
     """SUMO alone in a process of its own, stepping blocks of steps on request (on CPU
     ``cpu`` only, if given)."""
     import libsumo
 
     if cpu is not None:
         os.sched_setaffinity(0, {cpu})
-    libsumo.start(sumo_alone_cmd(net, routes, seed))
+    libsumo.start(sumo_alone_cmd(net, routes, seed, lane_change_s))
     try:
         while (n := conn.recv()) is not None:
             steps = np.empty(n)
@@ -87,7 +91,7 @@ class SumoAlone:
     blocks that alternate with the co-simulation's: both meet the same machine, whose speed
     drifts by 20-30 % from minute to minute here (one run after the other did not compare)."""
 
-    def __init__(self, net, routes, seed, busy_neighbour: bool = False):
+    def __init__(self, net, routes, seed, busy_neighbour: bool = False, lane_change_s=None):
         import multiprocessing as mp
 
         ctx = mp.get_context("spawn")
@@ -100,7 +104,8 @@ class SumoAlone:
             self.wake = ctx.Event()
             self.spinner = ctx.Process(target=_spin, args=(self.flag, self.wake, other), daemon=True)
             self.spinner.start()
-        self.proc = ctx.Process(target=_alone_main, args=(child, net, routes, seed, cpu), daemon=True)
+        self.proc = ctx.Process(target=_alone_main, args=(child, net, routes, seed, cpu, lane_change_s),
+                                daemon=True)
         self.proc.start()
         self.wall, self.steps, self.actors = 0.0, [], []
 
@@ -150,9 +155,10 @@ class Yardsticks:
     SUMO alone on one CPU beside a busy loop on another: both step each block of the
     co-simulation's steps just before it."""
 
-    def __init__(self, net, routes, seed, busy_neighbour: bool):
-        self.idle = SumoAlone(net, routes, seed)
-        self.busy = SumoAlone(net, routes, seed, busy_neighbour=True) if busy_neighbour else None
+    def __init__(self, net, routes, seed, busy_neighbour: bool, lane_change_s=None):
+        self.idle = SumoAlone(net, routes, seed, lane_change_s=lane_change_s)
+        self.busy = SumoAlone(net, routes, seed, busy_neighbour=True, lane_change_s=lane_change_s) \
+            if busy_neighbour else None
 
     def run(self, n, measure=True):
         self.idle.run(n, measure)
@@ -165,9 +171,12 @@ class Yardsticks:
             self.busy.close()
 
 
-def cosim(world, traffic, seconds, seed, warm, speed, parallel, alone: "Yardsticks | None", block=50):
+def cosim(world, traffic, seconds, seed, warm, speed, parallel, alone: "Yardsticks | None", block=50,
+          lane_change_s=None):
     cfg = SimConfig(world_dir=str(world), traffic=traffic, seed=seed, speed_mps=speed, duration_s=warm + seconds,
                     parallel_sumo=parallel)
+    if lane_change_s is not None:
+        cfg.lane_change_s = lane_change_s
     sim = Simulation(cfg).setup()
     try:
         if alone is not None:
@@ -274,6 +283,8 @@ def main(argv=None):
                     help="reuse windows built by an earlier run (by default each run builds its own)")
     ap.add_argument("--cpus", type=int, default=0,
                     help="pin this run (and SUMO's worker) to this many CPUs, e.g. 1 for the one-core figure")
+    ap.add_argument("--lane-change", type=float, help="SUMO's lane change duration, s, in both the co-simulation "
+                    "and SUMO alone (default: SimConfig's)")
     a = ap.parse_args(argv)
     if a.cpus:
         os.sched_setaffinity(0, set(sorted(os.sched_getaffinity(0))[:a.cpus]))
@@ -294,9 +305,11 @@ def main(argv=None):
         if not a.keep_windows:      # each run builds the window it drives into, as a new place would
             shutil.rmtree(world / "windows", ignore_errors=True)
         sticks = Yardsticks(world / w["net_file"], d.route_files, a.seed,
-                            busy_neighbour=parallel and len(os.sched_getaffinity(0)) >= 2)
+                            busy_neighbour=parallel and len(os.sched_getaffinity(0)) >= 2,
+                            lane_change_s=a.lane_change)
         try:
-            rtf_co, s, f, ld, tl = cosim(world, a.traffic, a.seconds, a.seed, a.warm, a.speed, parallel, sticks)
+            rtf_co, s, f, ld, tl = cosim(world, a.traffic, a.seconds, a.seed, a.warm, a.speed, parallel, sticks,
+                                         lane_change_s=a.lane_change)
         finally:
             sticks.close()
         alone = sticks.idle
@@ -320,7 +333,8 @@ def main(argv=None):
               f"max {f.max():.2f}")
         # the frames of a run alone on the machine: between SUMO alone's blocks (which make the
         # ratio fair) the co-simulation's frames run slower throughout, not only after a switch
-        _, _, f1, ld1, _ = cosim(world, a.traffic, a.seconds, a.seed, a.warm, a.speed, parallel, None)
+        _, _, f1, ld1, _ = cosim(world, a.traffic, a.seconds, a.seed, a.warm, a.speed, parallel, None,
+                                 lane_change_s=a.lane_change)
         print(f"      frame ms, the co-simulation alone on the machine (a second run, no SUMO-alone blocks): "
               f"median {np.median(f1):.2f}, p99 {np.percentile(f1, 99):.2f}, p99.9 {np.percentile(f1, 99.9):.2f} "
               f"({np.percentile(f1, 99.9) / np.median(f1):.2f} x median; goal <= 2), max {f1.max():.2f}; "

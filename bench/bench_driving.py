@@ -131,9 +131,12 @@ def _describe_collision(sim, ev: dict, ego) -> dict:
     return out
 
 
-def drive(world: str, duration: float, traffic, seed: int, speed: float, start=None, goal=None) -> dict:
+def drive(world: str, duration: float, traffic, seed: int, speed: float, start=None, goal=None,
+          lane_change_s=None) -> dict:
     cfg = SimConfig(world_dir=world, traffic=traffic, seed=seed, speed_mps=speed, duration_s=duration,
                     start=start, goal=goal)
+    if lane_change_s is not None:
+        cfg.lane_change_s = lane_change_s
     sim = Simulation(cfg).setup()
     sim.physics.load_budget_ms = 1e9
     from cosim.vehicle import min_turn_radius
@@ -152,6 +155,7 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
     reroute_events = []
     blocked_since = None
     settled = False
+    prev_actors, side_jumps = {}, []
     wall0 = time.perf_counter()
     try:
         n = int(round(duration / cfg.step_length_s))
@@ -176,6 +180,19 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
                                   round(ego.x, 1), round(ego.y, 1), round(float(ap.last[2]), 2)))
             if not ego.on_road:
                 off_road += 1
+            # vehicles within 60 m that moved over 1 m sideways (across their heading) in one step:
+            # SUMO's lane changes when they take one step
+            a = sim.actors()
+            cur = {}
+            for i, aid in enumerate(a["ids"]):
+                if a["kind"][i] != "person" and np.hypot(a["x"][i] - ego.x, a["y"][i] - ego.y) < 60.0:
+                    cur[aid] = (a["x"][i], a["y"][i], a["yaw"][i])
+                    if aid in prev_actors:
+                        x0, y0, yaw0 = prev_actors[aid]
+                        side = abs(-(a["x"][i] - x0) * np.sin(yaw0) + (a["y"][i] - y0) * np.cos(yaw0))
+                        if side > 1.0:
+                            side_jumps.append((round(ego.t, 1), aid, round(float(side), 2)))
+            prev_actors = cur
             if ap.reason == "cruise" and abs(ap.target_speed - speed) < 1e-6:
                 if not settled and abs(ego.speed - speed) < 0.15:
                     settled = True
@@ -236,7 +253,8 @@ def drive(world: str, duration: float, traffic, seed: int, speed: float, start=N
         "speed_err_p95": round(float(np.percentile(ce, 95)), 3) if len(ce) else None,
         "speed_err_max": round(float(ce.max()), 3) if len(ce) else None, "cruise_samples": int(len(ce)),
         "stops_per_km": round(stats.stops / km, 2), "near_misses_per_km": round(stats.near_misses / km, 2),
-        "near_misses": stats.near_misses, "min_ttc_s": round(float(stats.min_ttc_s), 2),
+        "near_misses": stats.near_misses, "actor_side_jumps": len(side_jumps),
+        "actor_side_jump_events": side_jumps[:10], "min_ttc_s": round(float(stats.min_ttc_s), 2),
         "min_gap_moving_m": round(float(stats.min_gap_moving_m), 2),
         "time_gap_p5_s": stats.as_dict()["time_gap_p5_s"], "red_light_stops": stats.red_light_stops,
         "stop_sign_stops": stats.stop_sign_stops, "pedestrian_yields": stats.pedestrian_yields,
@@ -286,6 +304,7 @@ def main():
     ap.add_argument("--chunks", type=int, default=1)
     ap.add_argument("--long", type=float, default=0.0, help="also one drive of this many seconds on Helsinki")
     ap.add_argument("--workdir", default=os.path.join(tempfile.gettempdir(), "cosim-bench-driving"))
+    ap.add_argument("--lane-change", type=float, help="SUMO's lane change duration, s (default: the run's)")
     ap.add_argument("--json", help="write the results here")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
@@ -297,7 +316,7 @@ def main():
         if world is None:
             continue
         speed = SPEEDS.get(name, args.speed)
-        r = drive(world, args.duration, args.traffic, args.seed, speed)
+        r = drive(world, args.duration, args.traffic, args.seed, speed, lane_change_s=args.lane_change)
         results[name] = r
         print(f"{name}: {json.dumps(r)}", flush=True)
         if name == "monaco":
@@ -306,7 +325,7 @@ def main():
             print(f"monaco-steep: {json.dumps(r)}", flush=True)
     if args.long > 0:
         world = world_for("helsinki", workdir, args.chunks)
-        r = drive(world, args.long, args.traffic, args.seed, args.speed)
+        r = drive(world, args.long, args.traffic, args.seed, args.speed, lane_change_s=args.lane_change)
         results[f"helsinki-{args.long:.0f}s"] = r
         print(f"helsinki-{args.long:.0f}s: {json.dumps(r)}", flush=True)
     print()

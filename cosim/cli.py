@@ -210,7 +210,8 @@ def sim_config_from_args(a):
         cfg.world_dir = a.world
     for k_arg, k_cfg in (("duration", "duration_s"), ("speed", "speed_mps"), ("traffic", "traffic"),
                          ("seed", "seed"), ("telemetry", "telemetry"), ("sensor_range", "sensor_range_m"),
-                         ("backend", "backend"), ("parallel_sumo", "parallel_sumo")):
+                         ("backend", "backend"), ("parallel_sumo", "parallel_sumo"),
+                         ("lane_change", "lane_change_s")):
         v = getattr(a, k_arg)
         if v is not None:
             setattr(cfg, k_cfg, v)
@@ -341,6 +342,8 @@ def make_parser() -> argparse.ArgumentParser:
                    "within the world")
     g.add_argument("--seed", type=int, help="random seed, 0..2147483647: the same seed (world, --duration and "
                    "--parallel-sumo) repeats the run")
+    g.add_argument("--lane-change", type=float, metavar="S", help="SUMO's drivers change lanes over S seconds "
+                   "(default 3; 0: SUMO's default, within one step)")
     g.add_argument("--swap-when-ready", action="store_true",
                    help="swap to the next window as soon as it is built, not at a fixed simulated time "
                         "after its build started (never waits for a build; the run is not repeatable)")

@@ -8,6 +8,7 @@ A scenario file is TOML with four tables, each optional::
     [traffic]
     density = "normal" # none | light | normal | dense | vehicles per km2
     seed = 1
+    lane_change_s = 3.0  # SUMO's drivers change lanes over this time (0: within one step)
     [ego]
     start = [60.1700, 24.9420]   # lat, lon; default: the world's centre
     goal = [60.1735, 24.9380]    # lat, lon; default: none (drive on along a random route)
@@ -39,6 +40,10 @@ from netgen.frame import check_latlon
 DENSITIES = ("none", "light", "normal", "dense")
 MAX_SPEED_MPS = 40.0
 MAX_SEED = 2**31 - 1
+# SUMO's drivers change lanes over this many seconds (--lanechange.duration: a lane's width at
+# about 1 m/s sideways, SUMO's own maxSpeedLat); 0 is SUMO's default, a change within one step,
+# which a mirrored car makes as a 3 m jump sideways
+LANE_CHANGE_S = 3.0
 
 
 @dataclass
@@ -52,6 +57,7 @@ class SimConfig:
     # libsumo in a worker process, stepping while the physics runs (None: when >= 2 CPUs)
     parallel_sumo: bool | None = None
     sumo_gui: bool = False
+    lane_change_s: float = LANE_CHANGE_S   # 0: SUMO's instant lane changes
     # ego
     start: tuple[float, float] | None = None
     goal: tuple[float, float] | None = None
@@ -115,6 +121,11 @@ class SimConfig:
             raise InputError(f"max snap distance {self.max_snap_m} m is out of range (0..1000]")
         if not isinstance(self.name, str):
             raise InputError(f"name must be a string, got {self.name!r}")
+        if not 0 <= float(self.lane_change_s) <= 20:
+            raise InputError(f"lane change duration {self.lane_change_s} s is out of range (0..20)")
+        if 0 < float(self.lane_change_s) < float(self.step_length_s):
+            raise InputError(f"lane change duration {self.lane_change_s} s is shorter than one step "
+                             f"({self.step_length_s} s): give 0 for SUMO's instant lane changes")
         if not 10 <= self.sensor_range_m <= 1000:
             raise InputError("sensor range must be 10..1000 m")
         if not self.sensor_range_m <= self.mirror_radius_m <= 2000:
@@ -166,7 +177,7 @@ class SimConfig:
         e = d.get("ego", {})
         r = d.get("run", {})
         mapping = {"density": "traffic", "seed": "seed", "backend": "backend", "sumo_gui": "sumo_gui",
-                   "parallel_sumo": "parallel_sumo",
+                   "parallel_sumo": "parallel_sumo", "lane_change_s": "lane_change_s",
                    "start": "start", "goal": "goal", "speed_mps": "speed_mps",
                    "respect_speed_limit": "respect_speed_limit", "max_snap_m": "max_snap_m",
                    "duration_s": "duration_s", "step_length_s": "step_length_s", "physics_hz": "physics_hz",

@@ -56,6 +56,7 @@ import numpy as np
 from netgen.errors import SimulationError
 
 from .component import Component
+from .config import LANE_CHANGE_S
 from .driving import _onto_segments, _via_lanes, run_steps as _run_steps
 
 log = logging.getLogger(__name__)
@@ -383,18 +384,22 @@ class SumoTraffic(Component):
     def __init__(self, net_file, route_files: Sequence = (), step_length: float = 0.1,
                  seed: int = 0, backend: str = "libsumo", gui: bool = False,
                  extra_args: Iterable[str] = (), time_to_teleport: float = 120.0,
-                 warnings: bool = False, persons_yield: bool = True):
+                 warnings: bool = False, persons_yield: bool = True,
+                 lane_change_s: float = LANE_CHANGE_S):
         if backend not in ("libsumo", "traci"):
             raise SimulationError(f"unknown SUMO backend {backend!r} (use libsumo or traci)")
         if gui and backend != "traci":
             raise SimulationError("sumo-gui needs backend='traci' (libsumo cannot drive a GUI)")
         if not (0.001 <= float(step_length) <= 10.0):
             raise SimulationError(f"SUMO step length {step_length} s is out of range (0.001..10)")
+        if not (0.0 <= float(lane_change_s) <= 20.0):
+            raise SimulationError(f"lane change duration {lane_change_s} s is out of range (0..20)")
         self.net_file = Path(net_file)
         if isinstance(route_files, (str, os.PathLike)):
             route_files = [route_files]
         self.route_files = [Path(p) for p in route_files]
         self.step_length = float(step_length)
+        self.lane_change_s = float(lane_change_s)
         self.seed = int(seed)
         self.backend = backend
         self.gui = bool(gui)
@@ -484,6 +489,8 @@ class SumoTraffic(Component):
                 "--time-to-teleport", f"{self.time_to_teleport:g}",
                 "--no-step-log", "--ignore-route-errors", "--pedestrian.model", "striping",
                 "--error-log", err_log, "--duration-log.disable"]
+        if self.lane_change_s > 0:
+            cmd += ["--lanechange.duration", f"{self.lane_change_s:g}"]
         if not self.warnings:
             cmd += ["--no-warnings"]
         if self.gui:

@@ -1061,16 +1061,18 @@ def _ego_and_chaser(t, depart_pos: float, depart_speed: float):
     return edge, idx, (lambda front_pos, left: _pose_beside(s, edge, idx, front_pos, left))
 
 
-@pytest.mark.parametrize("yield_", [True, False])
-def test_a_follower_in_the_lane_the_ego_straddles_into_keeps_behind_it(traffic, monkeypatch, yield_):
-    """Without the sublane model SUMO's drivers see the ego only in the lane it is mapped to.
-    The ego blending from one lane into the next (its lane path does over an edge) reaches into
-    the neighbouring lane for seconds; a car coming up there keeps 2 m behind it, so that when
-    SUMO maps the ego over into that lane it does not land on the car (Lauf, seeds 4 and 5:
-    SUMO counted a collision). Without that rule the same scenario is a collision."""
+@pytest.mark.parametrize("yield_,lane_change_s", [(True, None), (True, 0.0), (False, 0.0), (False, None)])
+def test_a_follower_in_the_lane_the_ego_straddles_into_keeps_behind_it(traffic, monkeypatch, yield_, lane_change_s):
+    """With SUMO's instant lane changes (lane_change_s 0) its drivers see the ego only in the
+    lane it is mapped to. The ego blending from one lane into the next (its lane path does over
+    an edge) reaches into the neighbouring lane for seconds; a car coming up there keeps 2 m
+    behind it, so that when SUMO maps the ego over into that lane it does not land on the car
+    (Lauf, seeds 4 and 5: SUMO counted a collision). Without that rule the same scenario is a
+    collision. With continuous lane changes (the default) SUMO itself puts the straddling ego on
+    its shadow lane too, and the car keeps behind it without the rule."""
     if not yield_:
         monkeypatch.setattr(SumoTraffic, "_straddle_yield", lambda self: None)
-    t = traffic(seed=2)
+    t = traffic(seed=2, **({} if lane_change_s is None else {"lane_change_s": lane_change_s}))
     s = t.sumo
 
     edge, idx, pose = _ego_and_chaser(t, 10, 10)
@@ -1084,7 +1086,7 @@ def test_a_follower_in_the_lane_the_ego_straddles_into_keeps_behind_it(traffic, 
         front += 0.1
         slowest = min(slowest, s.vehicle.getSpeed("chaser"))
     assert s.vehicle.getLaneID(EGO_ID) == f"{edge}_{idx + 1}"          # the ego went over
-    if yield_:
+    if yield_ or lane_change_s is None:
         assert t.stats.collisions == 0
         assert slowest < 3.0 and s.vehicle.getLanePosition("chaser") < s.vehicle.getLanePosition(EGO_ID) - 4.5
     else:       # (the scenario is one where it matters)
@@ -1497,3 +1499,46 @@ def test_sumo_errors_met_at_a_swap_are_caught_not_a_type_error(traffic):
                 bad += [f"{f.name}:{node.lineno}" for e in node.type.elts
                         if isinstance(e, ast.Attribute) and e.attr == "_exc"]
     assert not bad, bad
+
+
+@pytest.mark.parametrize("lane_change_s", [None, 0.0])
+def test_sumo_cars_change_lanes_over_seconds_not_in_one_step(traffic, lane_change_s):
+    """A SUMO car told to change lanes moves over into the next lane. By default (SimConfig's
+    lane_change_s, SUMO's --lanechange.duration) it slides across over about 3 s, so that its
+    mirrored body never jumps sideways; with 0 (SUMO's own default) it lands in the next lane
+    within one step, 3 m sideways at once (a mirrored car the ego can run into)."""
+    kw = {} if lane_change_s is None else {"lane_change_s": lane_change_s}
+    t = traffic(seed=3, **kw)
+    s = t.sumo
+    edge, idx = _two_lane_edge(s)
+    s.route.add("r_mover", [edge])
+    s.vehicle.add("mover", "r_mover", typeID="DEFAULT_VEHTYPE", depart="now", departPos="5",
+                  departSpeed="8", departLane=str(idx))
+    s.vehicle.setLaneChangeMode("mover", 0)
+    t.step()
+    x0, y0 = s.simulation.convert2D(edge, 50.0, idx)
+    x1, y1 = s.simulation.convert2D(edge, 51.0, idx)
+    yaw = math.atan2(y1 - y0, x1 - x0)                      # the edge's heading there
+
+    def side():             # the mirrored centre's offset to the left of lane idx's line
+        snap = t.actors_near_getters(x0, y0, 200.0)
+        k = list(snap.ids).index("mover")
+        return -(snap.x[k] - x0) * math.sin(yaw) + (snap.y[k] - y0) * math.cos(yaw)
+
+    s.vehicle.changeLane("mover", idx + 1, 10.0)
+    before = side()
+    steps = []
+    for _ in range(40):
+        t.step()
+        if "mover" not in s.vehicle.getIDList():
+            break
+        steps.append(side())
+    moves = np.abs(np.diff([before] + steps))
+    width = s.lane.getWidth(f"{edge}_{idx + 1}")
+    assert steps[-1] - before > 0.8 * width                 # it went over to the left lane
+    assert s.vehicle.getLaneID("mover") == f"{edge}_{idx + 1}"
+    if lane_change_s is None:
+        assert moves.max() < 0.25, moves.round(2)           # about 1 m/s: 0.1 m a step
+        assert np.sum(moves > 0.02) >= 20                   # spread over 2 s or more
+    else:
+        assert moves.max() > 0.8 * width                    # (the case that matters)
