@@ -255,10 +255,11 @@ def test_scenario_files_load_typed_and_their_mistakes_are_named(tmp_path):
     assert isinstance(city.goal, tuple) and len(city.goal) == 2 and city.world.preset == "helsinki"
 
     ok = tmp_path / "ok.toml"
-    ok.write_text('[world]\npreset = "kouvola"\nchunks = 0\n[traffic]\ndensity = 12\nseed = 4\n'
+    ok.write_text('[world]\npreset = "kouvola"\nchunks = 0\n[traffic]\ndensity = 12\nseed = 4\nlane_change_s = 0\n'
                   '[ego]\nstart = [60.53, 26.945]\nspeed_mps = 8\n[run]\nduration_s = 30\ntelemetry = "t/x.jsonl"\n')
     c = SimConfig.from_toml(ok)
     assert (c.traffic, c.seed, c.start, c.speed_mps, c.duration_s) == (12.0, 4, (60.53, 26.945), 8.0, 30.0)
+    assert c.lane_change_s == 0.0 and SimConfig().lane_change_s == 3.0
     assert isinstance(c.speed_mps, float) and c.telemetry == str(tmp_path / "t" / "x.jsonl")
     bad = {
         '[world]\npreset = "kouvola"\n[run]\nduration_s = "five"\n': "[run] duration_s must be a number, got 'five'",
@@ -292,6 +293,9 @@ def test_scenario_files_load_typed_and_their_mistakes_are_named(tmp_path):
         "[ego]\nmax_snap_m = -1": "max snap distance -1.0 m is out of range (0..1000]",
         "[world]\npreset = \"kouvola\"\njobs = 0": "jobs must be a whole number from 1 to 64, got 0",
         "[world]\npreset = \"kouvola\"\nhttp_timeout_s = -1": "HTTP timeout must be 0..3600 s, got -1.0",
+        "[traffic]\nlane_change_s = -1": "lane change duration -1.0 s is out of range (0..20)",
+        "[traffic]\nlane_change_s = 0.05": "lane change duration 0.05 s is shorter than one step (0.1 s): "
+                                           "give 0 for SUMO's instant lane changes",
     }
     for text, says in out_of_range.items():
         f.write_text(('[world]\npreset = "kouvola"\n' if "[world]" not in text else "") + text + "\n")
