@@ -213,9 +213,11 @@ def cosim(world, traffic, seconds, seed, warm, speed, parallel, alone: "Yardstic
     return seconds / wall, s, f, ld, np.array(tiles)
 
 
-def soak(world, minutes, seed, speed, telemetry=None):
+def soak(world, minutes, seed, speed, telemetry=None, lane_change_s=None):
     cfg = SimConfig(world_dir=str(world), traffic="dense", seed=seed, speed_mps=speed, duration_s=minutes * 60.0,
                     telemetry=telemetry)
+    if lane_change_s is not None:
+        cfg.lane_change_s = lane_change_s
     sim = Simulation(cfg).setup()
     proc = psutil.Process()
     try:
@@ -294,7 +296,7 @@ def main(argv=None):
     world = Path(w["out"])
     if a.soak_minutes:
         print(f"== soak: {a.soak_minutes:.0f} min, {a.preset}, dense traffic, {a.speed} m/s")
-        soak(world, a.soak_minutes, a.seed, a.speed, a.telemetry)
+        soak(world, a.soak_minutes, a.seed, a.speed, a.telemetry, a.lane_change)
         return
     d = generate_demand(world / w["net_file"], world / "traffic", density=a.traffic, seed=a.seed,
                         duration=a.warm + a.seconds + 60.0)
