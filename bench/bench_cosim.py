@@ -55,13 +55,13 @@ def sumo_alone_cmd(net, routes, seed, lane_change_s=None) -> list:
     """SUMO's command line for the yardstick, SUMO alone (also bench_sumo_gap.py's): the
     co-simulation's own options (``SumoTraffic.setup``) that change what SUMO computes."""
     from cosim.config import LANE_CHANGE_S
+    from cosim.traffic import lane_change_args
     from netgen.sumo_net import sumo_binary
 
-    lc = LANE_CHANGE_S if lane_change_s is None else lane_change_s
     return [sumo_binary("sumo"), "-n", str(net), "-r", ",".join(map(str, routes)), "--step-length", "0.1",
             "--seed", str(seed), "--no-step-log", "--no-warnings", "--collision.action", "warn",
             "--collision.mingap-factor", "0", "--time-to-teleport", "120", "--ignore-route-errors"] + \
-        (["--lanechange.duration", f"{lc:g}"] if lc > 0 else [])
+        lane_change_args(LANE_CHANGE_S if lane_change_s is None else lane_change_s)
 
 
 def _alone_main(conn, net, routes, seed, cpu=None, lane_change_s=None):

@@ -226,7 +226,8 @@ class Simulation:
             self._routes = list(demand.route_files)
             self._traffic_kind = kind
             self._traffic_kw = dict(step_length=cfg.step_length_s, seed=cfg.seed, backend=cfg.backend,
-                                    gui=cfg.sumo_gui, lane_change_s=cfg.lane_change_s, extra_args=["--max-num-vehicles", str(cap)] if cap else ())
+                                    gui=cfg.sumo_gui, lane_change_s=cfg.lane_change_s,
+                                    extra_args=["--max-num-vehicles", str(cap)] if cap else ())
             self.traffic = kind(self.world.net_file, self._routes, **self._traffic_kw)
             self.traffic.setup()
             self._expect_network()

@@ -372,6 +372,12 @@ def _plan(lane: str, pos: float, rng_state) -> dict:
     return dict(lane=lane, pos=float(pos), goal=None, rng_state=rng_state)
 
 
+def lane_change_args(seconds: float) -> list:
+    """SUMO's options for lane changes over ``seconds`` (0: SUMO's default, within one step);
+    also the benchmarks' SUMO alone."""
+    return ["--lanechange.duration", f"{seconds:g}"] if seconds > 0 else []
+
+
 # --- the component --------------------------------------------------------------------------
 def _plain_points(points) -> tuple:
     """Points as a tuple of (x, y) float tuples (hashable: part of a prepared extension's key)."""
@@ -489,8 +495,7 @@ class SumoTraffic(Component):
                 "--time-to-teleport", f"{self.time_to_teleport:g}",
                 "--no-step-log", "--ignore-route-errors", "--pedestrian.model", "striping",
                 "--error-log", err_log, "--duration-log.disable"]
-        if self.lane_change_s > 0:
-            cmd += ["--lanechange.duration", f"{self.lane_change_s:g}"]
+        cmd += lane_change_args(self.lane_change_s)
         if not self.warnings:
             cmd += ["--no-warnings"]
         if self.gui:

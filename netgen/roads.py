@@ -1269,11 +1269,11 @@ def _lanes_onto_planes(C, cg, cz, tilt, unit_left, by_plane: dict, members: dict
     return moved
 
 
-def _deck_lanes_onto_junctions(edges, lane_edge, C, cg, cz, cs, ctot, tilt, unit_left, planes, junctions,
-                               at_grade: dict, reach: float = OWN_PLANE_REACH_M, fade: float = OWN_PLANE_FADE_M) -> int:
+def _deck_lanes_onto_junctions(lane_edge, C, cg, cz, cs, ctot, tilt, unit_left, planes, junctions,
+                               at_grade: dict, opp, reach: float = OWN_PLANE_REACH_M, fade: float = OWN_PLANE_FADE_M) -> int:
     """The lanes of the decks :func:`_decks_onto_junctions` put on junctions' planes (``at_grade``:
-    edge number -> junction ids; the lanes of its opposite edge "-X" too, which share its
-    profile), lane by lane: their points within ``reach`` of those junctions' polygons lie on
+    edge number -> junction ids; the lanes of its opposite edge "-X" too, ``opp`` (per edge,
+    :func:`_higher_roads`), which share its profile), lane by lane: their points within ``reach`` of those junctions' polygons lie on
     the plane across their width too (the profile is one lane's; a lane beside it, level
     across, stood off a plane tilted across the deck by the grade times its distance from
     it), fading back over ``fade`` m (:func:`_lanes_onto_planes`); but a lane's ends stay on
@@ -1283,11 +1283,9 @@ def _deck_lanes_onto_junctions(edges, lane_edge, C, cg, cz, cs, ctot, tilt, unit
     points moved more than 1 cm."""
     if not at_grade or not len(C):
         return 0
-    num = {e.id: k for k, e in enumerate(edges)}
     jset: dict = {}
     for e, js in at_grade.items():
-        eid = edges[e].id
-        for k in (e, num.get(eid[1:] if eid.startswith("-") else "-" + eid, -1)):
+        for k in (e, int(opp[e])):
             if k >= 0:
                 jset.setdefault(k, set()).update(js)
     by_plane: dict = {}
@@ -1855,8 +1853,8 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     unit_left = nrm / hw[:, None]
     tilt = _ends_on_planes(edges, lanes, lane_edge, C, cg, cz, cs, ctot, unit_left, planes)
     own_plane = _onto_own_plane(edges, lane_edge, C, cg, cz, tilt, unit_left, planes, jrings)
-    at_grade_points = _deck_lanes_onto_junctions(edges, lane_edge, C, cg, cz, cs, ctot, tilt, unit_left, planes,
-                                                 jrings, {int(ref_e[g]): js for g, js in at_grade.items()})
+    at_grade_points = _deck_lanes_onto_junctions(lane_edge, C, cg, cz, cs, ctot, tilt, unit_left, planes, jrings,
+                                                 {int(ref_e[g]): js for g, js in at_grade.items()}, higher[9])
     side = np.array([l.pedestrian_only for l in lanes])
     rail = np.array([bool(l.allowed) and l.allowed <= RAIL_CLASSES for l in lanes])
     drive = np.array([l.drivable for l in lanes])
