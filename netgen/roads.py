@@ -1291,7 +1291,7 @@ def _deck_lanes_onto_junctions(lane_edge, C, cg, cz, cs, ctot, tilt, unit_left, 
     by_plane: dict = {}
     members: dict = {}
     for k in np.unique(cg).tolist():
-        for j in jset.get(int(lane_edge[k]), ()):
+        for j in sorted(jset.get(int(lane_edge[k]), ())):    # (not a set's order: PYTHONHASHSEED)
             pl = planes.get(j)
             if pl is None or j not in junctions or len(junctions[j]) < 3:
                 continue
