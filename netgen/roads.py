@@ -106,6 +106,9 @@ DECK_CLEAR_M = 0.5
 #: deck), rising to it at DECK_GRADE
 DECK_CLEARANCE_M = 5.0
 DECK_THICKNESS_M = 0.4          # (its underside, drawn only)
+#: a deck's lanes that stand at most this far over the lanes of a road they cross (nowhere
+#: further: not a bridge over it) come down onto them (build_roads)
+DECK_DOWN_MAX_M = 0.5
 DECK_GRADE = 0.06
 DECK_MAX_GRADE = 0.08
 #: a deck put at grade on the junctions it crosses (_decks_onto_junctions) is no steeper than
@@ -1574,7 +1577,7 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins:
 
 def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_edge, halfw, onto,
                              lower_only: bool = False, only=None, fade: float = CONFORM_FADE_M,
-                             cache: dict | None = None, twins: bool = False) -> int:
+                             cache: dict | None = None, twins: bool = False, max_apart: float = CONFORM_MAX_M) -> int:
     """Heights ``z`` (in place) of the points `P` (lines `g`, arc length `s`) of roads that
     overlap a higher-ranked road without meeting it at a node (or far from the node where they
     meet: :data:`CONFORM_NODE_CLEAR_M`): where a point's cross-section
@@ -1585,8 +1588,8 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     mask) limits the points looked at (not the fade); ``cache`` (a dict) keeps which points
     overlap which roads for another call on the same points; ``twins`` (the edges' profiles,
     before the junction planes) conforms twin roads too (:data:`CONFORM_TWIN_MIN_OVERLAP_M`,
-    up to their nodes). Two roads that are more than :data:`CONFORM_MAX_M` apart in height anywhere they overlap are a bridge and
-    the road under it: neither moves.
+    up to their nodes). Two roads that are more than ``max_apart`` (:data:`CONFORM_MAX_M`) apart in height anywhere they
+    overlap are a bridge and the road under it: neither moves.
 
     Roads that cross without a junction are a bridge or tunnel that OSM does not tag (a
     service road in Monaco's old railway tunnel under Boulevard Princesse Charlotte), or a
@@ -1615,7 +1618,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     _, inv = np.unique(pair, return_inverse=True)
     apart = np.zeros(inv.max() + 1 if len(inv) else 0)
     np.maximum.at(apart, inv, np.abs(tz - z[pi]))
-    keep = apart[inv] <= CONFORM_MAX_M
+    keep = apart[inv] <= max_apart
     pi, tz = pi[keep], tz[keep]
     n = len(P)
     delta = np.zeros(n)             # (the move, not the height, fades: the road keeps its grade)
@@ -1864,6 +1867,24 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, lane_edge[cg], hw,
                                           lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0],
                                           lower_only=True, only=drive[cg])
+    on_deck = edge_deck[lane_edge[cg]] & ~rail[cg]
+    if on_deck.any():
+        # and a deck's lane that stands over a road it crosses by DECK_DOWN_MAX_M at most (at
+        # grade: it could not rise over it) comes down onto that road's lanes there, the move
+        # fading along the deck; the road under it ranks lower and only goes down, so its lanes
+        # keep their junctions' planes (Portland's Burnside Bridge, layer 3, crossed Naito
+        # Parkway 0.17 m over its lanes, and a car on Naito stopped dead against its edge). The
+        # deck's lane ends stay on their junctions' planes: the move fades out over the last
+        # END_FADE_M of each lane (moved ends folded the junctions' surfaces blended from them).
+        at_grade_rank = np.where(edge_deck, -1, higher[2])
+        before = cz.copy()
+        conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher[:2] + (at_grade_rank,) + higher[3:],
+                                              C, cg, cs, cz, lane_edge[cg], hw,
+                                              lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0]
+                                              + CONFORM_BELOW_M,      # (onto it: it went under the deck already)
+                                              lower_only=True, only=on_deck, max_apart=DECK_DOWN_MAX_M)
+        end_fade = np.maximum(np.minimum(END_FADE_M, 0.5 * ctot[cg]), 1e-6)
+        cz[:] = before + (cz - before) * np.clip(np.minimum(cs, ctot[cg] - cs) / end_fade, 0.0, 1.0)
     # the pieces of sidewalks, footways, paths and cycleways (lanes no car uses) that lie on
     # another road's carriageway are left out, and do not hold the ground up either (a
     # footbridge over Avenue du Port, kept on the ground, stood 0.7-1.5 m above the road

@@ -1393,15 +1393,48 @@ def test_a_deck_that_cannot_clear_a_junction_meets_it(tmp_path):
     assert np.abs(gaps[("5520143_1", "40501872")]).min() > 1.55
     ends = _bridge_lane_end_steps(out, w)
     assert len(ends) > 100 and max(map(abs, ends.values())) < 0.1, max(ends.items(), key=lambda t: abs(t[1]))
-    # a car on MLK, southbound, 75 m before the junction, to 135 m beyond it
-    sim = Simulation(SimConfig(world_dir=str(out), traffic="none", seed=1, start=(45.51792, -122.661817),
-                               goal=(45.51603, -122.661818), speed_mps=10.0, duration_s=60)).setup()
-    sim.physics.load_budget_ms = 1e9           # tile loading independent of wall-clock time
-    try:
-        summary = sim.run()
-    finally:
-        sim.teardown()
-    assert summary.arrived and summary.held_longest_s < 2.0 and summary.ego_collisions == 0, summary.line()
+    # West Burnside's deck (layer 3) crosses Naito Parkway's southbound lanes at grade (before:
+    # up to 0.16 m over them along their centrelines and wheel tracks, now 0.09 m)
+    spread = _surface_spread_along(out, w, ("118951915#2_1", "118951915#2_2", "117445999#0_1", "117445999#0_2"))
+    assert len(spread) > 200 and spread.max() < 0.1, (len(spread), spread.max())
+
+    def drive(start, goal):
+        sim = Simulation(SimConfig(world_dir=str(out), traffic="none", seed=1, start=start, goal=goal,
+                                   speed_mps=10.0, duration_s=60)).setup()
+        sim.physics.load_budget_ms = 1e9           # tile loading independent of wall-clock time
+        try:
+            return sim.run()
+        finally:
+            sim.teardown()
+
+    # a car on MLK, southbound, 75 m before the junction, to 135 m beyond it; and one on Naito,
+    # southbound, 60 m before West Burnside's deck, to 100 m beyond it (before: it stopped dead
+    # at 10 m/s against the deck's edge and stood there)
+    for start, goal in (((45.51792, -122.661817), (45.51603, -122.661818)),
+                        ((45.52374, -122.67033), (45.52220, -122.67030))):
+        summary = drive(start, goal)
+        assert summary.arrived and summary.held_longest_s < 2.0 and summary.ego_collisions == 0, \
+            (start, summary.line())
+
+
+def _surface_spread_along(out: Path, w: dict, lanes, step: float = 0.25, reach: float = 0.8) -> np.ndarray:
+    """Along the given lanes' centrelines and their wheel tracks (0.8 m either side), every
+    `step` m: how far apart in height the road surfaces there are (those within 1 m of the
+    lowest: not a deck that clears the lane), 0 where one surface lies there."""
+    import shapely
+
+    from cosim.world import World
+
+    net = read_net(out / w["net_file"])
+    by_id = {ln.id: ln for e in net.edges.values() for ln in e.lanes}
+    pts = []
+    for lid in lanes:
+        line = shapely.LineString(by_id[lid].shape[:, :2])
+        for off in (-reach, 0.0, reach):
+            side = line.offset_curve(off) if off else line
+            pts += [side.interpolate(t).coords[0] for t in np.arange(0.0, side.length, step)]
+    hs = _surface_heights(World(out), np.array(pts))
+    return np.array([max(z for z in h if z < h[0] + 1.0) - h[0] for h in hs if h])
 
 def test_a_world_is_the_same_whatever_pythons_hash_seed(tmp_path):
     """Portland's default world, built in two processes whose string hashes differ
