@@ -238,7 +238,7 @@ class Simulation:
             self.physics = PhysicsWorld(self.world, gui=cfg.gui, physics_hz=hz,
                                         visuals=cfg.gui or cfg.render).setup()
             configure_physics(self.physics.client, hz)
-            x, y, yaw, lane, pos = self._snap_start()
+            x, y, yaw, lane, pos = self._face_the_goal(*self._snap_start())
             self.physics.update(x, y, self.keep_radius, budget_ms=1e9)
             z = float(self.world.ground_z(x, y)[0])
             self.vehicle = EgoVehicle(self.physics.client, position=(x, y, z + 0.05), yaw=yaw)
@@ -332,6 +332,32 @@ class Simulation:
         self.snap_info = {"start_snap_m": round(dist, 2), "start_lane": lane, "start_pos": round(pos, 1)}
         log.info("start snapped %.1f m onto lane %s", dist, lane)
         return px, py, yaw, lane, pos
+
+    def _face_the_goal(self, x: float, y: float, yaw: float, lane: str, pos: float):
+        """The start, turned round onto the road's other direction where the route from the
+        snapped lane would take a turnaround (it runs into a dead end: the car cannot make the
+        U-turn there, and in Lauf drove into the building at its end) and the route from the
+        other direction reaches the goal without one. (x, y, yaw, lane, pos)"""
+        if not self.cfg.goal:
+            return x, y, yaw, lane, pos
+
+        def turns_round(route) -> bool:
+            return any(b == (a[1:] if a.startswith("-") else "-" + a) for a, b in zip(route, route[1:]))
+
+        try:
+            if not turns_round(self.traffic.plan_route(lane, pos, **self._plan_kw())["route"]):
+                return x, y, yaw, lane, pos
+            other = self.traffic.opposite_lane_at(lane, x, y)
+            if other is None:
+                return x, y, yaw, lane, pos
+            route = self.traffic.plan_route(other[0], other[1], **self._plan_kw())["route"]
+        except SimulationError:
+            return x, y, yaw, lane, pos          # (_plan_route says what is wrong)
+        if not route or turns_round(route) or not np.isfinite(self.world.ground_z(other[2], other[3])[0]):
+            return x, y, yaw, lane, pos
+        log.info("start turned round onto lane %s: from lane %s the route takes a U-turn", other[0], lane)
+        self.snap_info.update(start_lane=other[0], start_pos=round(other[1], 1), start_turned=True)
+        return other[2], other[3], other[4], other[0], other[1]
 
     def _world_extent(self) -> str:
         b = [c["bounds_m"] for c in self.world.chunks.values()]

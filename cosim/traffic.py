@@ -1440,6 +1440,26 @@ class SumoTraffic(Component):
                 pos = self.lane_pos(lane, x, y)
         return self._lane_point(lane, pos, x, y)
 
+    def opposite_lane_at(self, lane: str, x: float, y: float, vclass: str = "passenger"):
+        """The lane of ``lane``'s road in the other direction ("X" and "-X") nearest to (x, y)
+        that a ``vclass`` may use, as :meth:`snap_lane` answers; None on a one-way road."""
+        from .driving import _lane_allows
+
+        s = self._require()
+        edge = lane.rsplit("_", 1)[0]
+        if edge.startswith(":"):
+            return None
+        other = edge[1:] if edge.startswith("-") else "-" + edge
+        try:
+            n = s.edge.getLaneNumber(other)
+        except self._exc:
+            return None
+        lanes = [f"{other}_{i}" for i in range(n) if _lane_allows(s, f"{other}_{i}", vclass)]
+        if not lanes:
+            return None
+        best = min(lanes, key=lambda ln: _polyline_distance(np.asarray(s.lane.getShape(ln), dtype=float)[:, :2], x, y))
+        return self._lane_point(best, self.lane_pos(best, x, y), x, y)
+
     def _lane_point(self, lane: str, pos: float, x: float, y: float) -> tuple:
         """:meth:`snap_lane`'s answer for ``lane`` at ``pos`` (clamped to the lane), asked
         from (x, y)."""

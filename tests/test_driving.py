@@ -159,6 +159,32 @@ def test_drives_to_gps_goal_in_lane_across_junctions(helsinki, tmp_path):
     assert np.abs(err).max() <= 0.3, np.abs(err).max()
 
 
+@pytest.fixture(scope="module")
+def kouvola(tmp_path_factory):
+    out = tmp_path_factory.mktemp("drv") / "kouvola"
+    build_world(WorldConfig(preset="kouvola", chunks=0, out=str(out), cache_dir=str(out.parent / "cache")))
+    return str(out)
+
+
+def test_a_start_facing_a_dead_end_turns_round_to_the_goal(kouvola):
+    """Kouvola: a start on -369217777#0, which runs 234 m into a cul-de-sac, with the goal
+    behind it (on 369217777#1). From that lane the route takes the dead end's U-turn, which
+    the car cannot make: it drove 453 m, into a building at the turn (twice), and arrived
+    after 68 s. The car now starts on the road's other direction, which leads to the goal."""
+    sim = start_sim(kouvola, start=(60.530104, 26.945745), goal=(60.529146, 26.945554), speed_mps=10.0,
+                    duration_s=60)
+    try:
+        # (from the snapped lane, the route turns round)
+        snapped = sim.traffic.plan_route("-369217777#0_1", 90.0, **sim._plan_kw())["route"]
+        assert "-369217777#0" in snapped and "369217777#0" in snapped, snapped
+        assert sim.snap_info["start_lane"] == "369217777#0_1" and sim.snap_info.get("start_turned")
+        assert "-369217777#0" not in sim.route, sim.route
+        summary = sim.run()
+    finally:
+        sim.teardown()
+    assert summary.arrived and summary.ego_collisions == 0 and summary.distance_m < 200, summary.line()
+
+
 def test_goal_far_from_roads_is_a_clear_error(helsinki):
     with pytest.raises(InputError, match=r"goal is 1\d\d m from the nearest road"):
         start_sim(helsinki, goal=HEL_OFF_ROAD, duration_s=5)
