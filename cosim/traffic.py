@@ -80,6 +80,9 @@ PERSON_YIELD_RANGE_M = 15.0    # pedestrians this near the ego are checked (see 
 PERSON_YIELD_MARGIN_M = 0.5    # they stop this far outside the ego's footprint
 PERSON_YIELD_HORIZON = (0.25, 0.5, 0.75, 1.0)   # s ahead at which their paths are tested
 PERSON_DIMS = (0.215, 0.478, 1.719)  # SUMO's default pedestrian type: length, width, height (m)
+#: a goal beyond a streamed window's roads whose nearest road there cannot be reached: the
+#: nearest one the car reaches within this much further (m), driving towards the goal
+BEYOND_SEARCH_M = 300.0
 EGO_UNSTICK_M = 0.015       # see _after_step: a long-waiting ego jitters this much in SUMO
 
 _LIBSUMO_OWNER = None   # the SumoTraffic running on libsumo in this process, if any
@@ -1809,16 +1812,23 @@ class SumoTraffic(Component):
                     return dict(out, route=[], path=None)
                 out["goal"]["beyond"] = True
             best = self._route_from(firsts, glane.rsplit("_", 1)[0])
-            if best is None and gdist <= max_goal_snap_m:
+            beyond = bool(out["goal"].get("beyond"))
+            if best is None and (gdist <= max_goal_snap_m or beyond):
                 # the nearest road does not lead there (cut off where the OSM extract ends, say:
                 # "goal unreachable" though a road the car reaches lay 50 m off): the nearest
-                # one within the snap distance that it does reach
-                for d, ln in self._lanes_near(gx, gy, max_goal_snap_m):
+                # one within the snap distance that it does reach; for a goal beyond this
+                # network (a streamed window), the nearest one it reaches within BEYOND_SEARCH_M
+                # more (the nearest road of a Portland window was the Marquam Bridge's deck,
+                # 161 m from the goal and not reachable: the run ended at the swap)
+                radius = max_goal_snap_m if not beyond else gdist + BEYOND_SEARCH_M
+                for d, ln in self._lanes_near(gx, gy, radius):
                     if ln.rsplit("_", 1)[0] == glane.rsplit("_", 1)[0]:
                         continue
                     best = self._route_from(firsts, ln.rsplit("_", 1)[0])
                     if best is not None:
                         out["goal"] = self._goal_at(self._lane_point(ln, self.lane_pos(ln, gx, gy), gx, gy))
+                        if beyond and out["goal"]["dist"] > max_goal_snap_m:
+                            out["goal"]["beyond"] = True
                         break
             if best is None:
                 return dict(out, route=[], path=None)

@@ -1530,11 +1530,13 @@ def _box_pairs(bmin, bmax, boxes, cell: float = 25.0):
     return i[ok], j[ok]
 
 
-def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins: bool = False):
+def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins: bool = False,
+                     any_rank: bool = False):
     """For :func:`_conform_to_higher_roads`: the points (numbers) whose cross-section runs far
     enough inside a vehicle lane of a higher-ranked road that their road does not meet at a
     node, with that lane (number among the vehicle lanes) and its edge: the highest-ranked
-    one per point. With ``twins``, twin roads (:data:`CONFORM_TWIN_MIN_OVERLAP_M`) count too."""
+    one per point. With ``twins``, twin roads (:data:`CONFORM_TWIN_MIN_OVERLAP_M`) count too;
+    with ``any_rank``, the roads of any rank (not the point's own road or its other direction)."""
     veh, cores, rank, fn, tn, core_box, nxy, nrad, _, opp = higher
     none = np.zeros(0, np.int64)
     sel = np.arange(len(P)) if only is None else np.flatnonzero(only)
@@ -1548,7 +1550,7 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins:
     # roads that meet at a node: only away from it (its junction's reach and
     # CONFORM_NODE_CLEAR_M more), where two one-way streets between the same two nodes run
     # over each other (Lauf: 0.1-0.2 m apart in height at a bend, a step the car ran into)
-    ok = rank[B] > rank[A]
+    ok = (B != A) & (opp[A] != B) if any_rank else rank[B] > rank[A]
     Q = P[sel[qi]]
     # (a street's two directions share one profile already: no twins)
     twin = (((fn[A] == fn[B]) & (tn[A] == tn[B])) | ((fn[A] == tn[B]) & (tn[A] == fn[B]))) & twins & (opp[A] != B)
@@ -1577,7 +1579,8 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins:
 
 def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_edge, halfw, onto,
                              lower_only: bool = False, only=None, fade: float = CONFORM_FADE_M,
-                             cache: dict | None = None, twins: bool = False, max_apart: float = CONFORM_MAX_M) -> int:
+                             cache: dict | None = None, twins: bool = False, max_apart: float = CONFORM_MAX_M,
+                             raise_only: bool = False, any_rank: bool = False) -> int:
     """Heights ``z`` (in place) of the points `P` (lines `g`, arc length `s`) of roads that
     overlap a higher-ranked road without meeting it at a node (or far from the node where they
     meet: :data:`CONFORM_NODE_CLEAR_M`): where a point's cross-section
@@ -1604,7 +1607,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     if cache is not None and "pairs" in cache:
         pi, vi, B = cache["pairs"]
     else:
-        pi, vi, B = _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only, twins)
+        pi, vi, B = _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only, twins, any_rank)
         if cache is not None:
             cache["pairs"] = (pi, vi, B)
     if not len(pi):
@@ -1618,13 +1621,17 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     _, inv = np.unique(pair, return_inverse=True)
     apart = np.zeros(inv.max() + 1 if len(inv) else 0)
     np.maximum.at(apart, inv, np.abs(tz - z[pi]))
-    keep = apart[inv] <= max_apart
+    # (with raise_only, point by point: where a bridge comes down to its end beside a road
+    # it crosses, or a road climbs beside one)
+    keep = (np.abs(tz - z[pi]) if raise_only else apart[inv]) <= max_apart
     pi, tz = pi[keep], tz[keep]
     n = len(P)
     delta = np.zeros(n)             # (the move, not the height, fades: the road keeps its grade)
     delta[pi] = tz - z[pi]
     if lower_only:
         delta = np.minimum(delta, 0.0)
+    if raise_only:
+        delta = np.maximum(delta, 0.0)
     on = np.zeros(n, dtype=bool)
     on[pi[delta[pi] != 0.0]] = True
     if not on.any():
@@ -1867,6 +1874,8 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, lane_edge[cg], hw,
                                           lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0],
                                           lower_only=True, only=drive[cg])
+    end_fade = np.maximum(np.minimum(END_FADE_M, 0.5 * ctot[cg]), 1e-6)
+    end_hold = np.clip(np.minimum(cs, ctot[cg] - cs) / end_fade, 0.0, 1.0)
     on_deck = edge_deck[lane_edge[cg]] & ~rail[cg]
     if on_deck.any():
         # and a deck's lane that stands over a road it crosses by DECK_DOWN_MAX_M at most (at
@@ -1883,8 +1892,19 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
                                               lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0]
                                               + CONFORM_BELOW_M,      # (onto it: it went under the deck already)
                                               lower_only=True, only=on_deck, max_apart=DECK_DOWN_MAX_M)
-        end_fade = np.maximum(np.minimum(END_FADE_M, 0.5 * ctot[cg]), 1e-6)
-        cz[:] = before + (cz - before) * np.clip(np.minimum(cs, ctot[cg] - cs) / end_fade, 0.0, 1.0)
+        cz[:] = before + (cz - before) * end_hold
+    # and a vehicle lane that another road's lanes still stand over by DECK_DOWN_MAX_M at most
+    # where they cross (neither can move otherwise: a road the other ranks over only goes
+    # down, and a bridge joined with its approaches into one edge ranks with the other as a
+    # deck: Portland's SW Jefferson Street and SW Sheridan Street stood 0.26 and 0.43 m under
+    # I-405's lanes, and cars stopped dead against their edges) comes up onto them, point by
+    # point, the move fading along it and not at its ends
+    before = cz.copy()
+    conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, lane_edge[cg], hw,
+                                          lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0]
+                                          + CONFORM_BELOW_M, only=drive[cg], max_apart=DECK_DOWN_MAX_M,
+                                          raise_only=True, any_rank=True)
+    cz[:] = before + (cz - before) * end_hold
     # the pieces of sidewalks, footways, paths and cycleways (lanes no car uses) that lie on
     # another road's carriageway are left out, and do not hold the ground up either (a
     # footbridge over Avenue du Port, kept on the ground, stood 0.7-1.5 m above the road

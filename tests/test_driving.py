@@ -185,6 +185,39 @@ def test_a_start_facing_a_dead_end_turns_round_to_the_goal(kouvola):
     assert summary.arrived and summary.ego_collisions == 0 and summary.distance_m < 200, summary.line()
 
 
+def test_a_goal_beyond_a_window_drives_towards_a_road_the_car_reaches(kouvola):
+    """A streamed window's re-plan towards a goal beyond its roads (``beyond_ok``) routes to the
+    road nearest the goal; where the car cannot reach that one (a Portland window's was the
+    Marquam Bridge's deck, 161 m from the goal: the run ended with "goal unreachable" at the
+    swap), to the nearest one it reaches. Kouvola: goals 150 m beyond the network's edge, all
+    round, whose nearest road no route from the start reaches."""
+    sim = start_sim(kouvola, start=(60.530104, 26.945745), duration_s=1)
+    try:
+        lane, pos = sim.snap_info["start_lane"], sim.snap_info["start_pos"]
+        (x0, y0), (x1, y1) = sim.traffic.sumo.simulation.getNetBoundary()
+        cx, cy, r = (x0 + x1) / 2, (y0 + y1) / 2, max(x1 - x0, y1 - y0) / 2
+        cut_off = []
+        for k in range(48):
+            a = 2 * math.pi * k / 48
+            # (the boundary's box, then 150 m more along the ray)
+            t = min(abs((x1 - cx) / math.cos(a)) if abs(math.cos(a)) > 1e-9 else math.inf,
+                    abs((y1 - cy) / math.sin(a)) if abs(math.sin(a)) > 1e-9 else math.inf)
+            gx, gy = cx + (t + 150.0) * math.cos(a), cy + (t + 150.0) * math.sin(a)
+            near = sim.traffic.snap_lane(gx, gy)
+            if near[5] > 50.0 and sim.traffic._route_from([lane.rsplit("_", 1)[0]], near[0].rsplit("_", 1)[0]) is None:
+                plan = sim.traffic.plan_route(lane, pos, goal_xy=(gx, gy), rng_state=sim._rng.getstate(),
+                                              max_goal_snap_m=50.0, beyond_ok=True)
+                cut_off.append((near[0], plan["route"], plan["goal"]))
+    finally:
+        sim.teardown()
+    assert len(cut_off) >= 3, cut_off
+    # (before: none of the 20; now 18, the other two with no road the car reaches within 300 m)
+    routed = [(n, g) for n, route, g in cut_off if route]
+    assert len(routed) >= 0.5 * len(cut_off), cut_off
+    for nearest, g in routed:
+        assert g["beyond"] and g["lane"] != nearest and g["dist"] < 150.0 + 300.0 + r, g
+
+
 def test_goal_far_from_roads_is_a_clear_error(helsinki):
     with pytest.raises(InputError, match=r"goal is 1\d\d m from the nearest road"):
         start_sim(helsinki, goal=HEL_OFF_ROAD, duration_s=5)
