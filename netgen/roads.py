@@ -1531,12 +1531,13 @@ def _box_pairs(bmin, bmax, boxes, cell: float = 25.0):
 
 
 def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins: bool = False,
-                     any_rank: bool = False):
+                     any_rank: bool = False, top: bool = True):
     """For :func:`_conform_to_higher_roads`: the points (numbers) whose cross-section runs far
     enough inside a vehicle lane of a higher-ranked road that their road does not meet at a
     node, with that lane (number among the vehicle lanes) and its edge: the highest-ranked
     one per point. With ``twins``, twin roads (:data:`CONFORM_TWIN_MIN_OVERLAP_M`) count too;
-    with ``any_rank``, the roads of any rank (not the point's own road or its other direction)."""
+    with ``any_rank``, the roads of any rank but the point's own, and without ``top`` every such
+    (point, lane, road), not only the highest-ranked road's per point (:func:`_top_overlaps`)."""
     veh, cores, rank, fn, tn, core_box, nxy, nrad, _, opp = higher
     none = np.zeros(0, np.int64)
     sel = np.arange(len(P)) if only is None else np.flatnonzero(only)
@@ -1550,7 +1551,7 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins:
     # roads that meet at a node: only away from it (its junction's reach and
     # CONFORM_NODE_CLEAR_M more), where two one-way streets between the same two nodes run
     # over each other (Lauf: 0.1-0.2 m apart in height at a bend, a step the car ran into)
-    ok = (B != A) & (opp[A] != B) if any_rank else rank[B] > rank[A]
+    ok = B != A if any_rank else rank[B] > rank[A]
     Q = P[sel[qi]]
     # (a street's two directions share one profile already: no twins)
     twin = (((fn[A] == fn[B]) & (tn[A] == tn[B])) | ((fn[A] == tn[B]) & (tn[A] == fn[B]))) & twins & (opp[A] != B)
@@ -1567,20 +1568,27 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins:
     ok = shapely.length(shapely.intersection(sections, cores[vi])) >= np.where(
         twin, CONFORM_TWIN_MIN_OVERLAP_M, CONFORM_MIN_OVERLAP_M)
     pi, vi, B, twin = sel[qi[ok]], vi[ok], B[ok], twin[ok]
-    if not len(pi):
-        return none, none, none
+    if not len(pi) or not top:
+        return pi, vi, B
     # per point, the highest-ranked road; a twin only where no other road is (a Monaco service
     # road taken up to its twin stood 0.23 m through a street it runs under)
-    o = np.lexsort((rank[B] + np.where(twin, 0, len(rank)), pi))
+    return _top_overlaps(pi, vi, B, rank[B] + np.where(twin, 0, len(rank)))
+
+
+def _top_overlaps(pi, vi, B, key):
+    """Of (point, lane, road) triples, each point's one with the highest ``key``."""
+    if not len(pi):
+        return pi, vi, B
+    o = np.lexsort((key, pi))
     pi, vi, B = pi[o], vi[o], B[o]
-    top = np.r_[pi[1:] != pi[:-1], True]
-    return pi[top], vi[top], B[top]
+    last = np.r_[pi[1:] != pi[:-1], True]
+    return pi[last], vi[last], B[last]
 
 
 def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_edge, halfw, onto,
                              lower_only: bool = False, only=None, fade: float = CONFORM_FADE_M,
                              cache: dict | None = None, twins: bool = False, max_apart: float = CONFORM_MAX_M,
-                             raise_only: bool = False, any_rank: bool = False) -> int:
+                             raise_only: bool = False) -> int:
     """Heights ``z`` (in place) of the points `P` (lines `g`, arc length `s`) of roads that
     overlap a higher-ranked road without meeting it at a node (or far from the node where they
     meet: :data:`CONFORM_NODE_CLEAR_M`): where a point's cross-section
@@ -1607,7 +1615,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     if cache is not None and "pairs" in cache:
         pi, vi, B = cache["pairs"]
     else:
-        pi, vi, B = _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only, twins, any_rank)
+        pi, vi, B = _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only, twins)
         if cache is not None:
             cache["pairs"] = (pi, vi, B)
     if not len(pi):
@@ -1871,12 +1879,21 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     # and where a lane's end (on its node's plane) or a turn still stands through a
     # higher-ranked road, it goes under it (a dead-end service road ending on a Monaco bridge
     # stood 0.3 m through it)
-    conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, lane_edge[cg], hw,
+    # (the three passes below take their pairs of overlapping roads from one search)
+    on_deck = edge_deck[lane_edge[cg]] & ~rail[cg]
+    own = lane_edge[cg]
+    ai, av, aB = _higher_overlaps(lane_edge, higher, C, cg, own, hw, only=drive[cg] | on_deck, any_rank=True, top=False)
+    rank = higher[2]
+
+    def pairs(mask, rk):
+        return {"pairs": _top_overlaps(ai[mask], av[mask], aB[mask], rk[aB[mask]])}
+
+    conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, own, hw,
                                           lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0],
-                                          lower_only=True, only=drive[cg])
+                                          lower_only=True, only=drive[cg],
+                                          cache=pairs(drive[cg][ai] & (rank[aB] > rank[own[ai]]), rank))
     end_fade = np.maximum(np.minimum(END_FADE_M, 0.5 * ctot[cg]), 1e-6)
     end_hold = np.clip(np.minimum(cs, ctot[cg] - cs) / end_fade, 0.0, 1.0)
-    on_deck = edge_deck[lane_edge[cg]] & ~rail[cg]
     if on_deck.any():
         # and a deck's lane that stands over a road it crosses by DECK_DOWN_MAX_M at most (at
         # grade: it could not rise over it) comes down onto that road's lanes there, the move
@@ -1888,10 +1905,12 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
         at_grade_rank = np.where(edge_deck, -1, higher[2])
         before = cz.copy()
         conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher[:2] + (at_grade_rank,) + higher[3:],
-                                              C, cg, cs, cz, lane_edge[cg], hw,
+                                              C, cg, cs, cz, own, hw,
                                               lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0]
                                               + CONFORM_BELOW_M,      # (onto it: it went under the deck already)
-                                              lower_only=True, only=on_deck, max_apart=DECK_DOWN_MAX_M)
+                                              lower_only=True, only=on_deck, max_apart=DECK_DOWN_MAX_M,
+                                              cache=pairs(on_deck[ai] & (at_grade_rank[aB] > at_grade_rank[own[ai]]),
+                                                          at_grade_rank))
         cz[:] = before + (cz - before) * end_hold
     # and a vehicle lane that another road's lanes still stand over by DECK_DOWN_MAX_M at most
     # where they cross (neither can move otherwise: a road the other ranks over only goes
@@ -1900,10 +1919,10 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     # I-405's lanes, and cars stopped dead against their edges) comes up onto them, point by
     # point, the move fading along it and not at its ends
     before = cz.copy()
-    conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, lane_edge[cg], hw,
+    conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, own, hw,
                                           lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0]
                                           + CONFORM_BELOW_M, only=drive[cg], max_apart=DECK_DOWN_MAX_M,
-                                          raise_only=True, any_rank=True)
+                                          raise_only=True, cache=pairs(drive[cg][ai] & (higher[9][own[ai]] != aB), rank))
     cz[:] = before + (cz - before) * end_hold
     # the pieces of sidewalks, footways, paths and cycleways (lanes no car uses) that lie on
     # another road's carriageway are left out, and do not hold the ground up either (a
