@@ -349,7 +349,8 @@ def make_parser() -> argparse.ArgumentParser:
                         "after its build started (never waits for a build; the run is not repeatable)")
     g.add_argument("--start", metavar="LAT,LON",
                    help="start here (snapped to the nearest lane; on a two-way road, the direction that reaches --to "
-                        "without a U-turn); default: the centre")
+                        "without a U-turn, or with no --to the one that does not run into a dead end); "
+                        "default: the centre")
     g.add_argument("--to", metavar="LAT,LON", help="drive to this GPS coordinate by road")
     g.add_argument("--respect-speed-limit", action="store_true", help="never exceed the lane's speed limit")
     g.add_argument("--sensor-range", type=float, metavar="M", help="lidar/camera range the world must cover (default 100)")

@@ -337,9 +337,24 @@ class Simulation:
         """The start, turned round onto the road's other direction where the route from the
         snapped lane would take a turnaround (it runs into a dead end: the car cannot make the
         U-turn there, and in Lauf drove into the building at its end) and the route from the
-        other direction reaches the goal without one. (x, y, yaw, lane, pos)"""
+        other direction reaches the goal without one; with no goal, where the road ahead runs
+        into a dead end and the other direction does not. (x, y, yaw, lane, pos)"""
         if not self.cfg.goal:
-            return x, y, yaw, lane, pos
+            # a random route: turned round where the road ahead runs into a dead end within
+            # 400 m and the other direction does not (looked up in the lanes' links: a route
+            # search here changed what SUMO did next, and the default run drove 359 m, not 360)
+            try:
+                if not self.traffic.runs_into_dead_end(lane):
+                    return x, y, yaw, lane, pos
+                other = self.traffic.opposite_lane_at(lane, x, y)
+                if other is None or self.traffic.runs_into_dead_end(other[0]) \
+                        or not np.isfinite(self.world.ground_z(other[2], other[3])[0]):
+                    return x, y, yaw, lane, pos
+            except SimulationError:
+                return x, y, yaw, lane, pos
+            log.info("start turned round onto lane %s: lane %s runs into a dead end", other[0], lane)
+            self.snap_info.update(start_lane=other[0], start_pos=round(other[1], 1), start_turned=True)
+            return other[2], other[3], other[4], other[0], other[1]
 
         def turns_round(route) -> bool:
             return any(b == (a[1:] if a.startswith("-") else "-" + a) for a, b in zip(route, route[1:]))

@@ -1443,6 +1443,31 @@ class SumoTraffic(Component):
                 pos = self.lane_pos(lane, x, y)
         return self._lane_point(lane, pos, x, y)
 
+    def runs_into_dead_end(self, lane: str, reach: float = 400.0) -> bool:
+        """Whether the road ahead of ``lane`` has no way on but a turnaround within ``reach``
+        m: its edge and, while there is one only, the edge that follows have no link (by
+        their car lanes, but a turnaround) to more than one road, and the last to none. (The
+        lanes' links only: no route search, which would change what SUMO does next.)"""
+        from .driving import _lane_allows, _links
+
+        s = self._require()
+        edge, run, seen = lane.rsplit("_", 1)[0], 0.0, set()
+        while run <= reach and edge not in seen:
+            seen.add(edge)
+            try:
+                n = s.edge.getLaneNumber(edge)
+            except self._exc:
+                return False
+            on = {ln[0].rsplit("_", 1)[0] for i in range(n) if _lane_allows(s, f"{edge}_{i}")
+                  for ln in _links(s, f"{edge}_{i}") if len(ln) < 7 or str(ln[6]).lower() != "t"}
+            if not on:
+                return True
+            if len(on) > 1:
+                return False
+            run += float(s.lane.getLength(f"{edge}_0"))
+            edge = on.pop()
+        return False
+
     def opposite_lane_at(self, lane: str, x: float, y: float, vclass: str = "passenger"):
         """The lane of ``lane``'s road in the other direction ("X" and "-X") nearest to (x, y)
         that a ``vclass`` may use, as :meth:`snap_lane` answers; None on a one-way road."""

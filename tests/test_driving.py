@@ -183,6 +183,16 @@ def test_a_start_facing_a_dead_end_turns_round_to_the_goal(kouvola):
     finally:
         sim.teardown()
     assert summary.arrived and summary.ego_collisions == 0 and summary.distance_m < 200, summary.line()
+    # and with no goal (a random route), the same start: the road ahead runs into the dead end
+    # (before: 403 m in 60 s, two collisions with the building at its end)
+    sim = start_sim(kouvola, start=(60.530104, 26.945745), speed_mps=10.0, duration_s=40)
+    try:
+        assert sim.traffic.runs_into_dead_end("-369217777#0_1") and not sim.traffic.runs_into_dead_end("369217777#0_1")
+        assert sim.snap_info["start_lane"] == "369217777#0_1" and sim.snap_info.get("start_turned")
+        summary = sim.run()
+    finally:
+        sim.teardown()
+    assert summary.ego_collisions == 0 and summary.distance_m > 250, summary.line()
 
 
 def test_a_goal_beyond_a_window_drives_towards_a_road_the_car_reaches(kouvola):
