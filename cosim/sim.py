@@ -238,14 +238,17 @@ class Simulation:
             self.physics = PhysicsWorld(self.world, gui=cfg.gui, physics_hz=hz,
                                         visuals=cfg.gui or cfg.render).setup()
             configure_physics(self.physics.client, hz)
-            x, y, yaw, lane, pos = self._face_the_goal(*self._snap_start())
+            x, y, yaw, lane, pos, plan = self._face_the_way(*self._snap_start())
             self.physics.update(x, y, self.keep_radius, budget_ms=1e9)
             z = float(self.world.ground_z(x, y)[0])
             self.vehicle = EgoVehicle(self.physics.client, position=(x, y, z + 0.05), yaw=yaw)
             self.vehicle.place_on_ground(x, y, yaw, z)      # on the road surface, tilted with it
             self.mirror = ActorMirror(self.physics.client, self.world, visuals=cfg.gui or cfg.render)
             self.world.bridge_lanes()           # (read now, not in the first frame: the mirror's decks)
-            self._plan_route(lane, pos)
+            if plan is not None:
+                self._apply_plan(plan)              # (planned already, facing the way)
+            else:
+                self._plan_route(lane, pos)
             self.traffic.add_ego(route_edges=self.route)
             self.traffic.set_ego_pose(x, y, yaw, 0.0)
             self.telemetry = Telemetry(cfg.telemetry).setup()
@@ -333,46 +336,47 @@ class Simulation:
         log.info("start snapped %.1f m onto lane %s", dist, lane)
         return px, py, yaw, lane, pos
 
-    def _face_the_goal(self, x: float, y: float, yaw: float, lane: str, pos: float):
-        """The start, turned round onto the road's other direction where the route from the
-        snapped lane would take a turnaround (it runs into a dead end: the car cannot make the
-        U-turn there, and in Lauf drove into the building at its end) and the route from the
-        other direction reaches the goal without one; with no goal, where the road ahead runs
-        into a dead end and the other direction does not. (x, y, yaw, lane, pos)"""
-        if not self.cfg.goal:
-            # a random route: turned round where the road ahead runs into a dead end within
-            # 400 m and the other direction does not (looked up in the lanes' links: a route
-            # search here changed what SUMO did next, and the default run drove 359 m, not 360)
-            try:
-                if not self.traffic.runs_into_dead_end(lane):
-                    return x, y, yaw, lane, pos
-                other = self.traffic.opposite_lane_at(lane, x, y)
-                if other is None or self.traffic.runs_into_dead_end(other[0]) \
-                        or not np.isfinite(self.world.ground_z(other[2], other[3])[0]):
-                    return x, y, yaw, lane, pos
-            except SimulationError:
-                return x, y, yaw, lane, pos
-            log.info("start turned round onto lane %s: lane %s runs into a dead end", other[0], lane)
-            self.snap_info.update(start_lane=other[0], start_pos=round(other[1], 1), start_turned=True)
-            return other[2], other[3], other[4], other[0], other[1]
+    def _face_the_way(self, x: float, y: float, yaw: float, lane: str, pos: float):
+        """The start, turned round onto the road's other direction where the way on from the
+        snapped lane takes a turnaround the car cannot make (a lane into a cul-de-sac: in
+        Lauf the car drove into the building at its end) and the other direction's does not:
+        with a goal, the route to it; with none, the road ahead, which runs into a dead end
+        (read from the lanes' links: a route search here changed what SUMO did next, and the
+        default run drove 359 m, not 360). (x, y, yaw, lane, pos, the goal's plan from the
+        lane taken, if made)"""
+
+        from .traffic import opposite_edge
 
         def turns_round(route) -> bool:
-            return any(b == (a[1:] if a.startswith("-") else "-" + a) for a, b in zip(route, route[1:]))
+            return any(b == opposite_edge(a) for a, b in zip(route, route[1:]))
 
+        start = (x, y, yaw, lane, pos, None)
         try:
-            if not turns_round(self.traffic.plan_route(lane, pos, **self._plan_kw())["route"]):
-                return x, y, yaw, lane, pos
-            other = self.traffic.opposite_lane_at(lane, x, y)
-            if other is None:
-                return x, y, yaw, lane, pos
-            route = self.traffic.plan_route(other[0], other[1], **self._plan_kw())["route"]
+            if self.cfg.goal:
+                plan = self.traffic.plan_route(lane, pos, **self._plan_kw())
+                if not turns_round(plan["route"]):
+                    return start[:5] + (plan,)
+                other = self.traffic.opposite_lane_at(lane, x, y)
+                if other is None:
+                    return start
+                plan = self.traffic.plan_route(other[0], other[1], **self._plan_kw())
+                if not plan["route"] or turns_round(plan["route"]):
+                    return start
+                why = "the route takes a U-turn"
+            else:
+                if not self.traffic.runs_into_dead_end(lane):
+                    return start
+                other = self.traffic.opposite_lane_at(lane, x, y)
+                if other is None or self.traffic.runs_into_dead_end(other[0]):
+                    return start
+                plan, why = None, "it runs into a dead end"
         except SimulationError:
-            return x, y, yaw, lane, pos          # (_plan_route says what is wrong)
-        if not route or turns_round(route) or not np.isfinite(self.world.ground_z(other[2], other[3])[0]):
-            return x, y, yaw, lane, pos
-        log.info("start turned round onto lane %s: from lane %s the route takes a U-turn", other[0], lane)
+            return start                        # (_plan_route says what is wrong)
+        if not np.isfinite(self.world.ground_z(other[2], other[3])[0]):
+            return start
+        log.info("start turned round onto lane %s: from lane %s %s", other[0], lane, why)
         self.snap_info.update(start_lane=other[0], start_pos=round(other[1], 1), start_turned=True)
-        return other[2], other[3], other[4], other[0], other[1]
+        return other[2], other[3], other[4], other[0], other[1], plan
 
     def _world_extent(self) -> str:
         b = [c["bounds_m"] for c in self.world.chunks.values()]

@@ -375,6 +375,11 @@ def _plan(lane: str, pos: float, rng_state) -> dict:
     return dict(lane=lane, pos=float(pos), goal=None, rng_state=rng_state)
 
 
+def opposite_edge(edge: str) -> str:
+    """The id of an OSM road's edge in the other direction: "X" and "-X"."""
+    return edge[1:] if edge.startswith("-") else "-" + edge
+
+
 def lane_change_args(seconds: float) -> list:
     """SUMO's options for lane changes over ``seconds`` (0: SUMO's default, within one step);
     also the benchmarks' SUMO alone."""
@@ -1448,18 +1453,18 @@ class SumoTraffic(Component):
         m: its edge and, while there is one only, the edge that follows have no link (by
         their car lanes, but a turnaround) to more than one road, and the last to none. (The
         lanes' links only: no route search, which would change what SUMO does next.)"""
-        from .driving import _lane_allows, _links
+        from .driving import _drivable_lanes, _links
 
         s = self._require()
         edge, run, seen = lane.rsplit("_", 1)[0], 0.0, set()
         while run <= reach and edge not in seen:
             seen.add(edge)
             try:
-                n = s.edge.getLaneNumber(edge)
+                mine = _drivable_lanes(s, edge)
             except self._exc:
                 return False
-            on = {ln[0].rsplit("_", 1)[0] for i in range(n) if _lane_allows(s, f"{edge}_{i}")
-                  for ln in _links(s, f"{edge}_{i}") if len(ln) < 7 or str(ln[6]).lower() != "t"}
+            on = {ln[0].rsplit("_", 1)[0] for m in mine for ln in _links(s, m)
+                  if len(ln) < 7 or str(ln[6]).lower() != "t"}
             if not on:
                 return True
             if len(on) > 1:
@@ -1468,21 +1473,19 @@ class SumoTraffic(Component):
             edge = on.pop()
         return False
 
-    def opposite_lane_at(self, lane: str, x: float, y: float, vclass: str = "passenger"):
-        """The lane of ``lane``'s road in the other direction ("X" and "-X") nearest to (x, y)
-        that a ``vclass`` may use, as :meth:`snap_lane` answers; None on a one-way road."""
-        from .driving import _lane_allows
+    def opposite_lane_at(self, lane: str, x: float, y: float):
+        """The car lane of ``lane``'s road in the other direction (:func:`opposite_edge`)
+        nearest to (x, y), as :meth:`snap_lane` answers; None on a one-way road."""
+        from .driving import _drivable_lanes
 
         s = self._require()
         edge = lane.rsplit("_", 1)[0]
         if edge.startswith(":"):
             return None
-        other = edge[1:] if edge.startswith("-") else "-" + edge
         try:
-            n = s.edge.getLaneNumber(other)
+            lanes = _drivable_lanes(s, opposite_edge(edge))
         except self._exc:
             return None
-        lanes = [f"{other}_{i}" for i in range(n) if _lane_allows(s, f"{other}_{i}", vclass)]
         if not lanes:
             return None
         best = min(lanes, key=lambda ln: _polyline_distance(np.asarray(s.lane.getShape(ln), dtype=float)[:, :2], x, y))
