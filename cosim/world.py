@@ -37,6 +37,9 @@ class World:
         self.net_file = self.path / m["net_file"]
         #: SUMO edges in tunnels: not meshed (worlds built before netgen 0.1.9 list none)
         self.tunnels = frozenset(m.get("tunnels", ()))
+        #: lanes over a road stacked under them (OSM layers, no bridge: netgen's
+        #: _stack_under_higher_layers): vehicles on them are put on their surface, as on a deck
+        self.stacked_over = frozenset(m.get("stacked_over_lanes", ()))
         self.windows = [self.path]
         self._grids: dict = {}
         self._scenery: dict = {}
@@ -64,6 +67,7 @@ class World:
                 changed.append(ij)
         self.net_file = other.net_file
         self.tunnels = self.tunnels | other.tunnels
+        self.stacked_over = self.stacked_over | other.stacked_over
         self.windows.append(other.path)
         self.meta["extent_m"] = list(self._union_extent())
         self.version += 1
@@ -109,7 +113,8 @@ class World:
     def bridge_lanes(self) -> frozenset:
         """The lanes of the network's bridges (OSM ``bridge=*``: decks, not on the ground):
         from ``<net>.bridges.json`` beside the network if a window's build wrote it (this
-        version's), else read from the network (0.25 s: the simulation's setup asks first)."""
+        version's), else read from the network (0.25 s: the simulation's setup asks first);
+        and the lanes that stand over a road stacked under them (:attr:`stacked_over`)."""
         got = getattr(self, "_bridge_lanes", None)
         if got is None or got[0] != self.net_file:
             side = Path(str(self.net_file) + ".bridges.json")
@@ -123,7 +128,7 @@ class World:
                     lanes = frozenset(doc.get("lanes", ()))
             if lanes is None:
                 lanes = _read_bridge_lanes(self.net_file)
-            got = self._bridge_lanes = (self.net_file, lanes)
+            got = self._bridge_lanes = (self.net_file, lanes | self.stacked_over)
         return got[1]
 
     def road_top_z(self, x, y, r: float = 3.0) -> np.ndarray:

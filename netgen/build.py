@@ -488,6 +488,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
                                 f"{PLANES_MARGIN_M:.0f} m or more inside the extent; in the world a "
                                 "streamed window starts from, also those its windows added"},
         "tunnels": sorted(e.id for e in net.edges.values() if e.function == "normal" and e.tunnel),
+        "stacked_over_lanes": sorted(ln.id for e in roads.stacked_over for ln in net.edges[e].lanes),
         "terrain": {"format": "npy-float32-grid", "spacing_m": spacing,
                     "layout": "chunks[].files.terrain: z[row, col] at x = bounds_m[0] + col*spacing_m, y = bounds_m[1] + row*spacing_m; row 0 = south; both edges included (shared with neighbours)",
                     "origin_m": [grid.xmin, grid.ymin], "shape": list(grid.z.shape),

@@ -115,6 +115,11 @@ DECK_MAX_GRADE = 0.08
 #: this between them and where it keeps its height (a steep ramp's grade; a short link over a
 #: street 1.3 m under it needs 9 %)
 DECK_AT_GRADE_MAX_GRADE = 0.12
+#: a road stacked under a higher layer's descends from its ends at this grade at most (a car
+#: park's ramp), and goes down only where it gets this far under the road over it
+#: (:func:`_stack_under_higher_layers`)
+STACK_MAX_GRADE = 0.15
+STACK_MIN_CLEARANCE_M = 2.5
 #: how far a sidewalk may reach into a vehicle lane of another road before that piece of it is
 #: left out (m)
 SIDEWALK_INTRUSION_M = 0.3
@@ -141,6 +146,7 @@ class RoadGeometry:
     support_car: np.ndarray = None                 # (n,) True where cars drive (lanes, junctions)
     support_tris: np.ndarray = None                # (m, 3) the drivable surface's triangles over support_pts
     support_hold: np.ndarray = None                # (n,) False where a bridge's deck is above the ground
+    stacked_over: list = field(default_factory=list)   # edges over a road stacked under them (_stack_under_higher_layers)
     planes: dict = field(default_factory=dict)     # node -> (x0, y0, z0, gx, gy): its junction plane
     stats: dict = field(default_factory=dict)
     net: object = None
@@ -945,6 +951,92 @@ def _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, clearance) -> None:
             inside = (rs[i] >= sc[o[0]]) & (rs[i] <= sc[o[-1]])
             env[inside] = np.maximum(env[inside], np.interp(rs[i][inside], sc[o], nc[o]))
             rz[i] = np.maximum(rz[i], np.minimum(env, cap))
+
+
+def _stack_under_higher_layers(edges, lanes, lane_edge, higher, group_of, RP, rg, rs, rz,
+                               vehicle_edge, onto_profile, step, jrings, edge_hw) -> list:
+    """Roads stacked in OSM's layers, neither of them a bridge (``rz`` in place; bridges rise
+    over what they cross, :func:`_raise_decks`): where a vehicle lane lies under a vehicle
+    lane of a road of a higher layer (its cross-section :data:`CONFORM_MIN_OVERLAP_M` or
+    more inside it, away from the nodes they share: :func:`_higher_overlaps`), its road's
+    profile goes :data:`DECK_CLEARANCE_M` under that road's, the descent widening at
+    :data:`DECK_GRADE` along it. Its ends stay, and so do its points on the junctions of other
+    nodes (``jrings``: a junction left over a lowered road stood in a car's way); from them it
+    descends at :data:`STACK_MAX_GRADE` at most; where that leaves less than
+    :data:`STACK_MIN_CLEARANCE_M`
+    under the other road it stays as it was (conformed to it, :func:`_conform_to_higher_roads`).
+    The lanes of "-X" follow the profile of "X" (:func:`_share_opposite_profiles`), so the
+    two directions go down together; the levelling takes the ground down to the lower road
+    (``level_under_roads``: the lowest road within reach).
+
+    Monaco's Liaison Marquet winds down through the Stade Louis II as two ways, layers -1 and
+    -2, whose lanes overlap for about 80 m: both on the ground's height, 0.3-0.5 m apart, a
+    car's wheels on one side climbed the other's edge and it rolled over.
+    Returns the ids of the edges whose lanes now stand over a road stacked under them (and
+    their opposites): the mirror puts the vehicles on them on their surface, as on a deck."""
+    veh, core_box, deck, opp = higher[0], higher[5], higher[8], higher[9]
+    layer_e = np.array([e.layer for e in edges], dtype=np.int64)
+    flat = ~deck & vehicle_edge
+    if not len(veh) or np.unique(layer_e[flat]).size < 2:
+        return []
+    # (candidates: vehicle lanes whose strip's box meets a higher layer's vehicle lane's box)
+    ve = lane_edge[veh]
+    lv = layer_e[ve]
+    lo = np.flatnonzero(flat[ve] & (lv < lv[flat[ve]].max()))
+    up = np.flatnonzero(flat[ve] & (lv > lv[flat[ve]].min()))
+    qi, ui = shapely.STRtree(shapely.box(*core_box[up].T)).query(shapely.box(*core_box[lo].T), predicate="intersects")
+    sel = lv[up[ui]] > lv[lo[qi]]
+    cand = np.unique(veh[lo[qi[sel]]])
+    if not len(cand):
+        return []
+    LP, lg = _concat([lanes[k].shape[:, :2] for k in cand])
+    C, cg = resample_many(LP, lg, step)
+    own = lane_edge[cand[cg]]
+    hw = np.array([lanes[k].width for k in cand])[cg] / 2.0
+    pi, li, B = _higher_overlaps(lane_edge, higher, C, cg, own, hw)
+    keep = (layer_e[B] > layer_e[own[pi]]) & ~deck[B]
+    pi, li, B = pi[keep], li[keep], B[keep]
+    if not len(pi):
+        return []
+    need = onto_profile(C[pi], veh[li], B) - DECK_CLEARANCE_M
+    # the profile each point takes its height from: its edge's, or for "-X" that of "X"
+    a = own[pi]
+    target = group_of[a]
+    src = np.where(np.array([edges[int(e)].id.startswith("-") for e in a]) & (opp[a] >= 0), opp[a], -1)
+    target = np.where((src >= 0) & (group_of[np.maximum(src, 0)] >= 0), group_of[np.maximum(src, 0)], target)
+    at, _ = _onto_profiles(RP, rg, rs, C[pi], target)
+    fin = np.isfinite(need) & np.isfinite(at) & (target >= 0)
+    need, at, target, B = need[fin], at[fin], target[fin], B[fin]
+    over: set = set()
+    jtree = jids = None
+    for g in np.unique(target):
+        i = np.arange(np.searchsorted(rg, g), np.searchsorted(rg, g, side="right"))
+        c = target == g
+        nc, sc = need[c], at[c]
+        ei = int(np.flatnonzero(group_of == g)[0])
+        e = edges[ei]
+        fixed = np.zeros(len(i), dtype=bool)
+        fixed[[0, -1]] = True
+        if jtree is None:
+            jids = list(jrings)
+            jtree = shapely.STRtree([shapely.Polygon(jrings[j]) for j in jids])
+        near, jn = jtree.query(shapely.points(RP[i]), predicate="dwithin", distance=float(edge_hw[ei]))
+        fixed[near[[jids[k] not in (e.from_node, e.to_node) for k in jn.tolist()]]] = True
+        f = np.flatnonzero(fixed)
+        floor = np.max(rz[i[f]][None, :] - STACK_MAX_GRADE * np.abs(rs[i][:, None] - rs[i[f]][None, :]), axis=1)
+        short = np.interp(sc, rs[i], floor) - nc
+        if np.any(short > DECK_CLEARANCE_M - STACK_MIN_CLEARANCE_M):
+            continue
+        env = np.min(nc[None, :] + DECK_GRADE * np.abs(rs[i][:, None] - sc[None, :]), axis=1)
+        o = np.argsort(sc)
+        inside = (rs[i] >= sc[o[0]]) & (rs[i] <= sc[o[-1]])
+        env[inside] = np.minimum(env[inside], np.interp(rs[i][inside], sc[o], nc[o]))
+        rz[i] = np.minimum(rz[i], np.maximum(env, floor))
+        for b in np.unique(B[c]).tolist():
+            over.add(edges[b].id)
+            if opp[b] >= 0:
+                over.add(edges[int(opp[b])].id)
+    return sorted(over)
 
 
 def _decks_onto_junctions(edges, ref_e, RP, rg, rs, rz, deck, hw, planes, junctions, skip=None,
@@ -1788,6 +1880,10 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     geo.planes = planes
 
     conformed = conform()
+    # roads stacked in OSM's layers, neither a bridge: the lower goes under the higher
+    stacked = _stack_under_higher_layers(edges, lanes, lane_edge, higher, group_of, RP, rg, rs, rz,
+                                         vehicle_edge, onto_profile, step, jrings, edge_hw)
+    geo.stacked_over = stacked
     at_grade: dict = {}
     if deck.any():
         before = rz.copy()

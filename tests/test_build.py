@@ -429,6 +429,46 @@ def test_monaco_with_srtm(tmp_path):
     _check_lanes_not_steeper_than_streets(out, w)
     _check_no_path_slab_over_vehicle_lanes(out, w)
     assert _check_no_holes_where_lanes_meet_junctions(out, w) > 100000
+    _check_stacked_passages_apart(out, w)
+
+
+def _check_stacked_passages_apart(out: Path, w: dict):
+    """Monaco's Liaison Marquet winds down through the Stade Louis II as two ways (OSM layers -1
+    and -2, ``tunnel=building_passage``, no bridge) whose lanes overlap for about 80 m. Both lay
+    on the ground's height, 0.3-0.5 m apart: a car on the lower one had its wheels on one side
+    on the other's edge, rolled over and stood against the stadium's wall. The lower road now
+    goes under the higher (at least ``STACK_MIN_CLEARANCE_M``), and the higher's lanes are
+    listed for the mirror, which puts the vehicles on them on their surface, as on a deck."""
+    from cosim.world import World
+    from netgen.roads import STACK_MIN_CLEARANCE_M
+
+    assert {"220547251_1", "-220547251_1"} <= set(w["stacked_over_lanes"])
+    assert "220547251_1" in World(out).bridge_lanes()
+    lower = {"503475655_1", "-503475655_1"}
+    upper = {"220547251_1", "-220547251_1"}
+    meshes = [(n.split("/", 1)[1], g) for n, g in _tile_meshes(out, "asphalt", "lane/")
+              if n.split("/", 1)[1] in lower | upper]       # (a lane's pieces in several tiles)
+    net = read_net(out / w["net_file"])
+    shapes = {ln.id: ln.shape[:, :2] for e in net.edges.values() for ln in e.lanes if ln.id in lower}
+    gaps = []
+    for lid in sorted(lower):
+        line = shapely.LineString(shapes[lid])
+        P = np.array([line.interpolate(t).coords[0] for t in np.arange(0.5, line.length, 1.0)])
+
+        def top(names):
+            z = np.full(len(P), -np.inf)
+            for g in (m for k, m in meshes if k in names):
+                loc, ray, _ = g.ray.intersects_location(np.column_stack([P, np.full(len(P), 5000.0)]),
+                                                        np.tile([0.0, 0.0, -1.0], (len(P), 1)))
+                np.maximum.at(z, ray, loc[:, 2])
+            return z
+
+        zl, zu = top({lid}), top(upper)
+        both = np.isfinite(zl) & np.isfinite(zu)
+        gaps += (zu - zl)[both].tolist()
+    gaps = np.array(gaps)
+    assert len(gaps) >= 40                       # metres of the lower lanes under the higher ones
+    assert gaps.min() >= STACK_MIN_CLEARANCE_M - 0.1, np.sort(gaps)[:10]
 
 
 def _overlap_lane_heights(a: Path, b: Path, margin: float = 300.0):
