@@ -18,6 +18,8 @@ from netgen.terrain import TerrainGrid
 
 
 class World:
+    stacked_over: frozenset = frozenset()       # (see __init__)
+
     def __init__(self, path: str | Path):
         self.path = Path(path).absolute()
         wj = self.path / "world.json"
