@@ -791,7 +791,7 @@ def _dense_triangulated(shapes, step: float):
 def carriageway_parts(net) -> list:
     """Where vehicles drive: each vehicle lane's strip (its SUMO shape buffered by half its
     width, flat ends), each junction polygon (repaired where invalid) and the strips of the
-    vehicle lanes inside junctions that leave their polygon (:func:`junction_gaps`). They
+    vehicle lanes inside junctions (their turns). They
     overlap; the union is not formed (scenery tests points against the parts). Kept on the
     network, as :func:`_road_lanes` (a build's buildings and scenery both use them)."""
     cached = getattr(net, "_carriageway_cache", None)
@@ -809,8 +809,12 @@ def carriageway_parts(net) -> list:
         bad = ~shapely.is_valid(jp)
         jp[bad] = _repaired(jp[bad])
         out += list(jp)
-    _, off = junction_gaps(net)             # (a junction's polygon can miss part of a turn)
-    out += list(_lane_strips(off))
+    # the vehicle lanes inside junctions too, whole: a junction's polygon can miss part of a
+    # turn (:func:`junction_gaps`), and is often narrower than its turns' lanes (Monaco: a
+    # building's wall stood 0.37 m outside a junction's polygon, inside a turn's lane, 1.2 m
+    # from its middle; the car's lidar saw it in its way and the car stood for good)
+    _, inner = _internal_lanes(net)
+    out += list(_lane_strips(inner))
     try:
         net._carriageway_cache = tuple(out)
     except AttributeError:      # a network object that takes no attributes: not kept
@@ -2138,6 +2142,11 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
                  if e.function == "crossing" and e.lanes and len(e.lanes[0].shape) >= 2
                  and not (under and e.id[1:e.id.rfind("_c")] in under)]
 
+    # the nodes only paths meet (no vehicle lane): their junctions and walking areas lie on
+    # a carriageway's lanes at the lanes' height (_onto_vehicle_lanes)
+    car_node = {n for e, v in zip(edges, vehicle_edge) if v for n in (e.from_node, e.to_node)}
+    foot_nodes = {n for e in edges for n in (e.from_node, e.to_node)} - car_node
+
     def polygon_part(kind):
         cand, V2, vg, F, fg = tri[kind]
         keep_c = np.unique(fg)                      # (shapes with triangles)
@@ -2150,6 +2159,13 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
         # (a walking area ":J_w0" lies around junction J, and overlaps its lanes' ends too)
         owner = [pid[k] if kind == "asphalt" else pid[k][1:pid[k].rfind("_w")] for k in keep]
         Z = zfun_at(V2, owner, remap[vg])           # (points of shapes left out: -1, unused)
+        foot = np.array([o in foot_nodes for o in owner], dtype=bool)
+        if foot.any():
+            # (the pieces of a path's junction on a carriageway's lanes: left out, as its
+            # sidewalks are; the rest meets the lanes at their height)
+            on = _faces_on_vehicle_lanes(V2, F, foot[FG], higher)
+            F, FG = F[~on], FG[~on]
+            _onto_vehicle_lanes(V2, Z, foot[remap[vg]] & (remap[vg] >= 0), higher, C, cg, cz)
         if kind == "sidewalk":
             Z += SIDEWALK_LIFT
         V = np.column_stack([V2, Z])
@@ -2513,6 +2529,46 @@ def _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_ed
     alone[1:] &= ~same
     pt_keep = next_ok | prev_ok | alone | ~soft[cg]
     return seg_keep, pt_keep
+
+
+def _onto_vehicle_lanes(xy, z, sel, higher, C, cg, cz) -> int:
+    """Heights ``z`` (in place) of the points ``xy[sel]`` (of the junctions and walking areas
+    of nodes only paths meet) that lie on a vehicle lane (within :data:`SIDEWALK_INTRUSION_M`
+    of its strip less as much either side, ``higher``'s: the lane's strip), within :data:`CONFORM_MAX_M` of
+    its height: that lane's height where they project onto its centreline (``C``, ``cg``,
+    ``cz``). A footway's dead end mapped on a Monaco street (node 8258594205) took its height
+    from the footways' ends, and its junction and walking area stood 0.13-0.27 m over the
+    street's two lanes: a car at 8 m/s ran into the edge and stood. Their triangles on the
+    lanes are left out (:func:`_faces_on_vehicle_lanes`, as a path's lanes are:
+    :func:`_sidewalks_off_other_roads`); these are the points of the rest. Returns how many
+    points moved."""
+    veh, cores = higher[0], higher[1]
+    idx = np.flatnonzero(sel)
+    if not len(idx) or not len(veh):
+        return 0
+    pi, li = shapely.STRtree(cores).query(shapely.points(xy[idx]), predicate="dwithin", distance=SIDEWALK_INTRUSION_M)
+    if not len(pi):
+        return 0
+    pi, first = np.unique(pi, return_index=True)         # (one lane per point)
+    li = li[first]
+    zl, _ = _onto_profiles(C, cg, cz, xy[idx[pi]], veh[li])
+    ok = np.isfinite(zl) & (np.abs(zl - z[idx[pi]]) <= CONFORM_MAX_M)
+    z[idx[pi[ok]]] = zl[ok]
+    return int(ok.sum())
+
+
+def _faces_on_vehicle_lanes(xy, F, sel, higher) -> np.ndarray:
+    """Which of the triangles ``F`` (of points ``xy``; only those where ``sel``) have their
+    centre on a vehicle lane (its strip less :data:`SIDEWALK_INTRUSION_M` either side,
+    ``higher``'s)."""
+    out = np.zeros(len(F), dtype=bool)
+    idx = np.flatnonzero(sel)
+    if not len(idx) or not len(higher[0]):
+        return out
+    cen = xy[F[idx]].mean(axis=1)
+    hit, _ = shapely.STRtree(higher[1]).query(shapely.points(cen), predicate="within")
+    out[idx[hit]] = True
+    return out
 
 
 def _ring_polygons(rings: np.ndarray):
