@@ -967,8 +967,8 @@ def _stack_under_higher_layers(edges, lanes, lane_edge, higher, group_of, RP, rg
     :data:`DECK_GRADE` along it. Its ends stay, and so do its points on the junctions of other
     nodes (``jrings``: a junction left over a lowered road stood in a car's way); from them it
     descends at :data:`STACK_MAX_GRADE` at most; where that leaves less than
-    :data:`STACK_MIN_CLEARANCE_M`
-    under the other road it stays as it was (conformed to it, :func:`_conform_to_higher_roads`).
+    :data:`STACK_MIN_CLEARANCE_M` under the other road, it stays as it was (conformed to it,
+    :func:`_conform_to_higher_roads`).
     The lanes of "-X" follow the profile of "X" (:func:`_share_opposite_profiles`), so the
     two directions go down together; the levelling takes the ground down to the lower road
     (``level_under_roads``: the lowest road within reach).
@@ -2142,8 +2142,8 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
                  if e.function == "crossing" and e.lanes and len(e.lanes[0].shape) >= 2
                  and not (under and e.id[1:e.id.rfind("_c")] in under)]
 
-    # the nodes only paths meet (no vehicle lane): their junctions and walking areas lie on
-    # a carriageway's lanes at the lanes' height (_onto_vehicle_lanes)
+    # the nodes only paths meet (no vehicle lane): their junctions' and walking areas' pieces
+    # on a carriageway's lanes are left out, and the rest meets the lanes at their height
     car_node = {n for e, v in zip(edges, vehicle_edge) if v for n in (e.from_node, e.to_node)}
     foot_nodes = {n for e in edges for n in (e.from_node, e.to_node)} - car_node
 
@@ -2534,9 +2534,9 @@ def _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_ed
 def _onto_vehicle_lanes(xy, z, sel, higher, C, cg, cz) -> int:
     """Heights ``z`` (in place) of the points ``xy[sel]`` (of the junctions and walking areas
     of nodes only paths meet) that lie on a vehicle lane (within :data:`SIDEWALK_INTRUSION_M`
-    of its strip less as much either side, ``higher``'s: the lane's strip), within :data:`CONFORM_MAX_M` of
-    its height: that lane's height where they project onto its centreline (``C``, ``cg``,
-    ``cz``). A footway's dead end mapped on a Monaco street (node 8258594205) took its height
+    of ``higher``'s strips, which are that much narrower either side) and within
+    :data:`CONFORM_MAX_M` of its height: that lane's height where they project onto its
+    centreline (``C``, ``cg``, ``cz``). A footway's dead end mapped on a Monaco street (node 8258594205) took its height
     from the footways' ends, and its junction and walking area stood 0.13-0.27 m over the
     street's two lanes: a car at 8 m/s ran into the edge and stood. Their triangles on the
     lanes are left out (:func:`_faces_on_vehicle_lanes`, as a path's lanes are:

@@ -12,4 +12,4 @@ PY=${PYTHON:-python3}
 workers=${COSIM_TEST_WORKERS:-$(.venv/bin/python -c 'import os; print(min(4, len(os.sched_getaffinity(0))))')}
 dist=()
 [ "$workers" -gt 1 ] && dist=(-n "$workers" --dist loadfile)
-exec .venv/bin/python -m pytest -q -ra "${dist[@]}" "$@"
+exec .venv/bin/python -m pytest -q -ra ${dist[@]+"${dist[@]}"} "$@"
