@@ -822,7 +822,7 @@ def carriageway_parts(net) -> list:
     return out
 
 
-def _deck_clearance(RP, idx, own_e, hw, under_e, higher, lane_edge, onto_profile) -> np.ndarray:
+def _deck_clearance(RP, idx, own_e, hw, under_e, higher, lane_edge, onto_profile, core_tree) -> np.ndarray:
     """For :func:`_raise_decks`: for the deck's profile points ``idx`` (of edges ``own_e``,
     half widths ``hw``), the height the deck must reach there: :data:`DECK_CLEARANCE_M` over
     the highest vehicle lane within ``hw`` of it of an edge in ``under_e`` (a mask of edges),
@@ -834,7 +834,7 @@ def _deck_clearance(RP, idx, own_e, hw, under_e, higher, lane_edge, onto_profile
     if not len(idx) or not len(veh):
         return need
     pts = shapely.points(RP[idx])
-    qi, li = shapely.STRtree(cores).query(pts, predicate="dwithin", distance=float(hw.max()))
+    qi, li = core_tree.query(pts, predicate="dwithin", distance=float(hw.max()))
     B, A = lane_edge[veh[li]], own_e[qi]
     ok = under_e[B]
     Q = RP[idx[qi]]
@@ -957,8 +957,8 @@ def _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, clearance) -> None:
             rz[i] = np.maximum(rz[i], np.minimum(env, cap))
 
 
-def _stack_under_higher_layers(edges, lanes, lane_edge, higher, group_of, RP, rg, rs, rz,
-                               vehicle_edge, onto_profile, step, jrings, edge_hw) -> list:
+def _stack_under_higher_layers(edges, lanes, lane_edge, higher, ref_e, group_of, opposite_profile,
+                               RP, rg, rs, rz, vehicle_edge, onto_profile, step, jrings, edge_hw) -> list:
     """Roads stacked in OSM's layers, neither of them a bridge (``rz`` in place; bridges rise
     over what they cross, :func:`_raise_decks`): where a vehicle lane lies under a vehicle
     lane of a road of a higher layer (its cross-section :data:`CONFORM_MIN_OVERLAP_M` or
@@ -1005,9 +1005,7 @@ def _stack_under_higher_layers(edges, lanes, lane_edge, higher, group_of, RP, rg
     need = onto_profile(C[pi], veh[li], B) - DECK_CLEARANCE_M
     # the profile each point takes its height from: its edge's, or for "-X" that of "X"
     a = own[pi]
-    target = group_of[a]
-    src = np.where(np.array([edges[int(e)].id.startswith("-") for e in a]) & (opp[a] >= 0), opp[a], -1)
-    target = np.where((src >= 0) & (group_of[np.maximum(src, 0)] >= 0), group_of[np.maximum(src, 0)], target)
+    target = np.where(opposite_profile[a] >= 0, opposite_profile[a], group_of[a])
     at, _ = _onto_profiles(RP, rg, rs, C[pi], target)
     fin = np.isfinite(need) & np.isfinite(at) & (target >= 0)
     need, at, target, B = need[fin], at[fin], target[fin], B[fin]
@@ -1017,7 +1015,7 @@ def _stack_under_higher_layers(edges, lanes, lane_edge, higher, group_of, RP, rg
         i = np.arange(np.searchsorted(rg, g), np.searchsorted(rg, g, side="right"))
         c = target == g
         nc, sc = need[c], at[c]
-        ei = int(np.flatnonzero(group_of == g)[0])
+        ei = int(ref_e[g])
         e = edges[ei]
         fixed = np.zeros(len(i), dtype=bool)
         fixed[[0, -1]] = True
@@ -1509,13 +1507,10 @@ def _junction_ties(junctions, ids, node, n, RP, rg, u, r, rz, mx, my, mz, gx, gy
     return nr
 
 
-def _share_opposite_profiles(edges, lane_edge, ref_e, RP, rg, rz, C, cg, cz, max_d: float = 8.0) -> int:
-    """Heights ``cz`` (in place) of the lane points of every edge "-X" whose opposite edge "X"
-    has a profile: that profile's height where the point projects onto it (an edge none of
-    whose points comes within ``max_d`` of it keeps its own). Returns how many points
-    changed. (Taking the middle lanes' heights by projection too, not only the others',
-    changed the steep Monaco street's profile so that the speed test went over its 0.3 m/s:
-    left for later.)"""
+def _opposite_profiles(edges, ref_e) -> np.ndarray:
+    """Per edge, the profile group (of ``ref_e``) of its opposite edge "X" for an edge "-X"
+    that has a profile, whose lanes take their heights from it
+    (:func:`_share_opposite_profiles`); -1 for the others."""
     group_of = {int(e): g for g, e in enumerate(ref_e)}         # edge number -> profile group
     number_of = {e.id: i for i, e in enumerate(edges)}
     target = np.full(len(edges), -1, dtype=np.int64)
@@ -1525,6 +1520,19 @@ def _share_opposite_profiles(edges, lane_edge, ref_e, RP, rg, rz, C, cg, cz, max
         j = number_of.get(e.id[1:])
         if j is not None and j in group_of:
             target[i] = group_of[j]
+    return target
+
+
+def _share_opposite_profiles(edges, lane_edge, ref_e, RP, rg, rz, C, cg, cz, max_d: float = 8.0,
+                             target=None) -> int:
+    """Heights ``cz`` (in place) of the lane points of every edge "-X" whose opposite edge "X"
+    has a profile: that profile's height where the point projects onto it (an edge none of
+    whose points comes within ``max_d`` of it keeps its own). Returns how many points
+    changed. (Taking the middle lanes' heights by projection too, not only the others',
+    changed the steep Monaco street's profile so that the speed test went over its 0.3 m/s:
+    left for later.) ``target``: :func:`_opposite_profiles`, if made already."""
+    if target is None:
+        target = _opposite_profiles(edges, ref_e)
     tg = target[lane_edge[cg]]
     sel = np.nonzero(tg >= 0)[0]
     if not len(sel) or not len(RP):
@@ -1858,6 +1866,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     # roads that overlap a higher-ranked road without a junction take its height there: before
     # the planes are fitted (so that the nodes near the overlap follow) and again after
     higher = _higher_roads(edges, lanes, lane_edge, net.junctions)
+    core_tree = shapely.STRtree(higher[1])          # (their vehicle lanes' strips, for the passes below)
     group_of = np.full(len(edges), -1, dtype=np.int64)
     group_of[ref_e] = np.arange(len(ref_e))
 
@@ -1885,14 +1894,15 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
 
     conformed = conform()
     # roads stacked in OSM's layers, neither a bridge: the lower goes under the higher
-    stacked = _stack_under_higher_layers(edges, lanes, lane_edge, higher, group_of, RP, rg, rs, rz,
-                                         vehicle_edge, onto_profile, step, jrings, edge_hw)
+    opposite_profile = _opposite_profiles(edges, ref_e)
+    stacked = _stack_under_higher_layers(edges, lanes, lane_edge, higher, ref_e, group_of, opposite_profile,
+                                         RP, rg, rs, rz, vehicle_edge, onto_profile, step, jrings, edge_hw)
     geo.stacked_over = stacked
     at_grade: dict = {}
     if deck.any():
         before = rz.copy()
         _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, lambda idx, own_e, under_e: _deck_clearance(
-            RP, idx, own_e, edge_hw[own_e], under_e, higher, lane_edge, onto_profile))
+            RP, idx, own_e, edge_hw[own_e], under_e, higher, lane_edge, onto_profile, core_tree))
         # a deck that stayed down over a junction of other roads is at grade there: on its
         # plane, and the roads conformed under it follow it
         raised = np.bincount(rg, np.abs(rz - before) > 1e-9, len(ref_e)) > 0
@@ -1962,7 +1972,7 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     # where each lane point of "-X" projects onto it: each levelled across its own width on a
     # hillside, they met at a step of the cross slope times a lane width (0.43 m on a Monaco
     # street, which a car's chassis stopped on)
-    _share_opposite_profiles(edges, lane_edge, ref_e, RP, rg, rz, C, cg, cz)
+    _share_opposite_profiles(edges, lane_edge, ref_e, RP, rg, rz, C, cg, cz, target=opposite_profile)
     width = np.array([l.width for l in lanes])
     hw = width[cg] / 2.0
     nrm = _normals_many(C, cg) * hw[:, None]
@@ -2163,9 +2173,9 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
         if foot.any():
             # (the pieces of a path's junction on a carriageway's lanes: left out, as its
             # sidewalks are; the rest meets the lanes at their height)
-            on = _faces_on_vehicle_lanes(V2, F, foot[FG], higher)
+            on = _faces_on_vehicle_lanes(V2, F, foot[FG], core_tree)
             F, FG = F[~on], FG[~on]
-            _onto_vehicle_lanes(V2, Z, foot[remap[vg]] & (remap[vg] >= 0), higher, C, cg, cz)
+            _onto_vehicle_lanes(V2, Z, foot[remap[vg]] & (remap[vg] >= 0), higher[0], core_tree, C, cg, cz)
         if kind == "sidewalk":
             Z += SIDEWALK_LIFT
         V = np.column_stack([V2, Z])
@@ -2531,10 +2541,11 @@ def _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_ed
     return seg_keep, pt_keep
 
 
-def _onto_vehicle_lanes(xy, z, sel, higher, C, cg, cz) -> int:
+def _onto_vehicle_lanes(xy, z, sel, veh, core_tree, C, cg, cz) -> int:
     """Heights ``z`` (in place) of the points ``xy[sel]`` (of the junctions and walking areas
-    of nodes only paths meet) that lie on a vehicle lane (within :data:`SIDEWALK_INTRUSION_M`
-    of ``higher``'s strips, which are that much narrower either side) and within
+    of nodes only paths meet) that lie on a vehicle lane ``veh[k]`` (within
+    :data:`SIDEWALK_INTRUSION_M` of its strip in ``core_tree``, :func:`_higher_roads`', which is
+    that much narrower either side) and within
     :data:`CONFORM_MAX_M` of its height: that lane's height where they project onto its
     centreline (``C``, ``cg``, ``cz``). A footway's dead end mapped on a Monaco street (node 8258594205) took its height
     from the footways' ends, and its junction and walking area stood 0.13-0.27 m over the
@@ -2542,11 +2553,10 @@ def _onto_vehicle_lanes(xy, z, sel, higher, C, cg, cz) -> int:
     lanes are left out (:func:`_faces_on_vehicle_lanes`, as a path's lanes are:
     :func:`_sidewalks_off_other_roads`); these are the points of the rest. Returns how many
     points moved."""
-    veh, cores = higher[0], higher[1]
     idx = np.flatnonzero(sel)
     if not len(idx) or not len(veh):
         return 0
-    pi, li = shapely.STRtree(cores).query(shapely.points(xy[idx]), predicate="dwithin", distance=SIDEWALK_INTRUSION_M)
+    pi, li = core_tree.query(shapely.points(xy[idx]), predicate="dwithin", distance=SIDEWALK_INTRUSION_M)
     if not len(pi):
         return 0
     pi, first = np.unique(pi, return_index=True)         # (one lane per point)
@@ -2557,16 +2567,16 @@ def _onto_vehicle_lanes(xy, z, sel, higher, C, cg, cz) -> int:
     return int(ok.sum())
 
 
-def _faces_on_vehicle_lanes(xy, F, sel, higher) -> np.ndarray:
+def _faces_on_vehicle_lanes(xy, F, sel, core_tree) -> np.ndarray:
     """Which of the triangles ``F`` (of points ``xy``; only those where ``sel``) have their
-    centre on a vehicle lane (its strip less :data:`SIDEWALK_INTRUSION_M` either side,
-    ``higher``'s)."""
+    centre on a vehicle lane (its strip less :data:`SIDEWALK_INTRUSION_M` either side, in
+    ``core_tree``: :func:`_higher_roads`')."""
     out = np.zeros(len(F), dtype=bool)
     idx = np.flatnonzero(sel)
-    if not len(idx) or not len(higher[0]):
+    if not len(idx):
         return out
     cen = xy[F[idx]].mean(axis=1)
-    hit, _ = shapely.STRtree(higher[1]).query(shapely.points(cen), predicate="within")
+    hit, _ = core_tree.query(shapely.points(cen), predicate="within")
     out[idx[hit]] = True
     return out
 
