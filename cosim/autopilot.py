@@ -43,7 +43,8 @@ Longitudinal: a target speed, the minimum of
   its steering takes it, which in a turn tighter than the car can follow is not the lane path
   (it cuts the corner). Where the sweep would touch a mirrored actor beside the corridor, the
   car follows the path closely (a short look-ahead, at most ``CLOSE_TRACK_MPS``) if that
-  passes it, else stops ``SWEEP_STOP_M`` before the touch and waits (``clearance ...``);
+  passes it, else stops ``SWEEP_STOP_M`` before the touch and waits (``clearance ...``),
+  steering closely while it stops where that comes no nearer (``_sweep_steering``);
 * lane changes (gap acceptance): where the path moves over to the next lane along an edge
   (``LanePath.changes``), a vehicle in that lane (or coming into it: a junction lane beside
   the car's, the road before) without room for the car, behind it its safe gap
@@ -291,17 +292,11 @@ class Autopilot:
         lane_change = self._lane_change(st, path, s_here, v, actors, dt, t)
         # the car's own sweep: anything it would touch beside the lane path's corridor; where
         # it would, follow the path closely and slowly if that passes, else stop before it
-        touch = self._sweep(st, path, s_here, actors, self.pp)
-        self.sweep, pp, v_sweep = touch, self.pp, None
-        if touch is not None:
-            close = self._sweep(st, path, s_here, actors, self.pp_close)
-            if close is None or close[0] > touch[0] + 1.0:
-                pp, v_sweep = self.pp_close, CLOSE_TRACK_MPS
-                self.sweep = close
-            if not self._sweeping:
-                self.stats.sweeps += 1
-                self.stats.events.append((round(getattr(sim, "t", 0.0), 2), "sweep", touch[1] + (
-                    " (close tracking)" if v_sweep is not None else "")))
+        touch, self.sweep, pp, v_sweep = self._sweep_steering(st, path, s_here, actors)
+        if touch is not None and not self._sweeping:
+            self.stats.sweeps += 1
+            self.stats.events.append((round(getattr(sim, "t", 0.0), 2), "sweep", touch[1] + (
+                " (close tracking)" if v_sweep is not None else "")))
         self._sweeping = touch is not None
         steer, _ = pp.steer(path, st.x, st.y, st.yaw, v, s_here, velocity=getattr(st, "velocity", None),
                             yaw_rate=float(getattr(st, "yaw_rate", 0.0)))
@@ -707,6 +702,27 @@ class Autopilot:
         if not cands:
             return None
         return min(cands, key=lambda c: c.gap)
+
+    def _sweep_steering(self, st, path, s_here, actors):
+        """The car's sweep (_sweep) with its usual steering and, where that touches something,
+        with close tracking (``pp_close``). Returns (the first touch with the usual steering,
+        the touch to stop before or None, the steering to use, the speed it allows or None).
+
+        Where close tracking passes, or touches a metre and more further on, the car follows
+        the path closely at CLOSE_TRACK_MPS at most. Where it touches no nearer than the usual
+        steering, the car stops before it and steers closely while it does: steered by the
+        longer look-ahead between two steps of close tracking, a car in a tight right turn in
+        Lauf ran wide each time it braked, until it touched a bus waiting on the opposite lane
+        of the road it turned into (then it pushed against the bus for 18 s)."""
+        touch = self._sweep(st, path, s_here, actors, self.pp)
+        if touch is None:
+            return None, None, self.pp, None
+        close = self._sweep(st, path, s_here, actors, self.pp_close)
+        if close is None or close[0] > touch[0] + 1.0:
+            return touch, close, self.pp_close, CLOSE_TRACK_MPS
+        if close[0] >= touch[0]:
+            return touch, close, self.pp_close, None
+        return touch, touch, self.pp, None
 
     def _sweep(self, st, path, s_here, actors, pp) -> tuple | None:
         """Where the car's footprint, rolled forward along the way its steering takes it,

@@ -2231,6 +2231,74 @@ def test_a_lane_change_holds_back_for_a_car_in_the_lane_changed_into(helsinki):
         sim.teardown()
 
 
+def test_the_car_steers_closely_while_it_stops_for_its_sweep(helsinki):
+    """Where the sweep touches a vehicle with the usual steering and close tracking touches it
+    no nearer (no way past), the car stops before it and steers closely while it does (Lauf:
+    steered by the usual, longer look-ahead whenever it braked for the sweep, the car ran wide
+    in a tight right turn and touched a bus waiting on the opposite lane of the road it turned
+    into, then pushed against it for 18 s). A vehicle standing across the turn's apex, at
+    offsets from the turn's inside to its outside: where close tracking passes, the car tracks
+    closely at CLOSE_TRACK_MPS; where it touches no nearer, the car stops before the close
+    touch with the close steering, which turns tighter than the usual one."""
+    import types
+
+    from cosim.autopilot import CLOSE_TRACK_MPS
+    from cosim.traffic import ActorsSnapshot
+
+    sim = start_sim(helsinki, start=HEL_MID, goal=(60.170763, 24.948623))     # a right turn 420 m on
+    try:
+        ap, path = sim.driver, sim.path
+        st = sim.vehicle.state()
+        s_car = s_of(sim, st.x, st.y)[0]
+        s0 = next(float(u) for u in np.arange(s_car + 10.0, path.length - 20.0, 0.5)
+                  if abs(math.remainder(path.heading_at(u + 15.0) - path.heading_at(u), 2 * math.pi))
+                  > math.radians(60))
+        turn = math.remainder(path.heading_at(s0 + 15.0) - path.heading_at(s0), 2 * math.pi)
+        side = 1.0 if turn > 0 else -1.0                 # + = a left turn: its inside is to the left
+        s_apex = float(max(np.arange(s0, s0 + 15.0, 0.5), key=lambda u: abs(math.remainder(
+            path.heading_at(u + 2.5) - path.heading_at(u - 2.5), 2 * math.pi))))
+        s_e = s_apex - 4.0
+        # the car 0.5 m outside the path (it runs wide), heading along it: the sweep rolls
+        px, py = path.point_at(s_e)
+        he = path.heading_at(s_e)
+        ex, ey = px + side * 0.5 * math.sin(he), py - side * 0.5 * math.cos(he)
+        car = types.SimpleNamespace(x=float(ex), y=float(ey), yaw=he, speed=3.0, steer=0.0)
+        one = lambda v: np.array([v])                    # noqa: E731
+
+        def standing(offset: float):
+            h = path.heading_at(s_apex)
+            px, py = path.point_at(s_apex)
+            x, y = px - side * offset * math.sin(h), py + side * offset * math.cos(h)
+            return ActorsSnapshot(0.0, np.array(["q1"], dtype=object), np.array(["passenger"], dtype=object),
+                                  one(x), one(y), one(h + math.pi / 2), one(4.5), one(1.8), one(1.5), one(0.0),
+                                  one(0.0), np.array(["x_0"], dtype=object))
+
+        ap._k, _, ap._lat = path.project(car.x, car.y, path.index_at(s_e))
+        assert abs(abs(ap._lat) - 0.5) < 0.05
+        stops = tracks = 0
+        for offset in np.arange(-6.0, 6.01, 0.25):       # + = towards the turn's inside
+            snap = standing(float(offset))
+            touch, stop_at, pp, v_max = ap._sweep_steering(car, path, s_e, snap)
+            if touch is None:
+                assert (stop_at, pp, v_max) == (None, ap.pp, None)
+                continue
+            close = ap._sweep(car, path, s_e, snap, ap.pp_close)
+            if close is None or close[0] > touch[0] + 1.0:
+                tracks += 1
+                assert pp is ap.pp_close and v_max == CLOSE_TRACK_MPS and stop_at == close
+            elif close[0] >= touch[0]:
+                stops += 1
+                assert pp is ap.pp_close and v_max is None and stop_at == close, (offset, touch, close)
+                k_close = ap.pp_close.steer(path, car.x, car.y, car.yaw, car.speed, s_e)[1]
+                k_usual = ap.pp.steer(path, car.x, car.y, car.yaw, car.speed, s_e)[1]
+                assert side * k_close > side * k_usual          # tighter into the turn
+            else:
+                assert pp is ap.pp and v_max is None and stop_at == touch
+        assert stops >= 1, "no offset where close tracking touches no nearer"
+    finally:
+        sim.teardown()
+
+
 def test_the_sweep_sees_a_turning_bus_where_its_body_bends(helsinki):
     """A bus or a truck is mirrored as a chain of boxes along the path its front took; in a
     turn its tail lies inside the straight box of its snapshot's heading. The car's sweep
