@@ -74,9 +74,13 @@ def _build_window(cfg_dict: dict, window: tuple, out: str, traffic, seed: int, d
         d = generate_demand(net, Path(w["out"]) / "traffic", density=traffic, seed=seed, duration=duration)
         from .world import write_bridge_lanes
         write_bridge_lanes(net)        # (read here, not in the loop's frame at the swap)
-        conn.send(("ok", w["out"], [str(p) for p in d.route_files]))
+        result = ("ok", w["out"], [str(p) for p in d.route_files])
     except BaseException as e:  # report anything, the loop decides
-        conn.send(("error", f"{type(e).__name__}: {e}", []))
+        result = ("error", f"{type(e).__name__}: {e}", [])
+    try:
+        conn.send(result)
+    except OSError:
+        pass        # the loop has ended without this window (a script that left without teardown())
     finally:
         conn.close()
 
@@ -346,4 +350,8 @@ class WorldStreamer:
 
 if __name__ == "__main__":
     _conn = worker_connection()
-    _build_window(*_conn.recv(), _conn)
+    try:
+        _job = _conn.recv()
+    except (EOFError, OSError):
+        raise SystemExit(0)         # the loop ended before it asked for a window
+    _build_window(*_job, _conn)

@@ -428,6 +428,27 @@ def test_the_next_window_is_the_one_the_car_drives_into(motorway_world):
     assert summary.distance_m > 1900 and summary.ego_collisions == 0
 
 
+@pytest.mark.parametrize("ask", [True, False])
+def test_a_window_worker_whose_loop_has_gone_ends_quietly(tmp_path, ask):
+    """A script that leaves without ``teardown()`` (or a loop that dies) closes its end of a
+    window worker's connection: the worker, done with its window or not yet asked for one,
+    ends without a traceback on the user's terminal (it printed two, a BrokenPipeError from
+    sending its result). The worker gets a window it fails to build (an unknown setting), so
+    that it has a result to send after the loop has gone."""
+    script = (
+        "import time\n"
+        "from cosim.workers import start_worker\n"
+        "proc, conn = start_worker('cosim.streaming')\n"
+        + ("conn.send(({'no_such_setting': 1}, (0, 0), 'x', 'normal', 0, 60.0))\n" if ask else "")
+        + "conn.close()\n"
+        "print('exit', proc.wait(timeout=120))\n")
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=180,
+                       cwd=str(tmp_path), env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1])))
+    assert r.returncode == 0, r.stderr
+    assert "exit 0" in r.stdout
+    assert "Traceback" not in r.stderr and "Error" not in r.stderr, r.stderr
+
+
 def test_a_window_the_car_has_left_is_not_swapped_to(motorway_world):
     """A window built for where the car was, ready when the car is no further inside it than
     inside the current one, is given up (SUMO started ahead on it too) and not swapped to."""
