@@ -48,7 +48,8 @@ the road: the part over it (grown by 0.2 m) becomes a passage, its underside at 
 (``PASSAGE_CLEARANCE_M``, a road's usual clearance) above the highest ground under that part
 (on a slope, higher than above the base), or at the building's own ``min_height`` if higher,
 the rest standing on the ground as usual; where less than 1 m of the building would be left
-above that underside, the part over the road is left out. This is what OSM maps as ``tunnel=building_passage`` (a street through a block's
+above that underside, the part over the road is left out (and so is a building wholly over
+the road). This is what OSM maps as ``tunnel=building_passage`` (a street through a block's
 gateway), and it also settles footprints that netconvert's lanes run into (a narrow old-town
 street whose guessed lane and sidewalk widths are wider than the space between its mapped
 buildings: in Lauf, a wall 0.37 m from a lane's centre stopped the car). The record keeps the
@@ -560,9 +561,13 @@ def cut_passages(plan: "BuildingPlan", road_parts, ground=None, clearance: float
         top = max(low, clearance + rise)
         upper = high - top >= PASSAGE_MIN_SOLID_M
         pieces = ([(rest, low, high)] if rest is not None else []) + ([(over, top, high)] if upper else [])
-        if not pieces:
-            continue                        # (a low roof all over the road: nothing left)
         cuts.append(b)
+        if not pieces:
+            # (wholly over the road and lower than a passage: left out, as the part over the
+            # road of any building is; kept whole, Helsinki's 3 m underpass entrance, way
+            # 317502062, stood across a turn's lane)
+            rec["passage_from_m"] = None
+            continue
         for g, a, z in pieces:
             geoms.append(g)
             z0s.append(a)
@@ -571,13 +576,18 @@ def cut_passages(plan: "BuildingPlan", road_parts, ground=None, clearance: float
         rec["passage_from_m"] = round(float(top), 2) if upper else None
     if not cuts:
         return np.zeros(0, np.int64)
-    V2, F2, vs2, fs2 = extrude_footprints(geoms, z0s, z1s)
+    if geoms:
+        V2, F2, vs2, fs2 = extrude_footprints(geoms, z0s, z1s)
+    else:
+        V2, F2, vs2, fs2 = np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64)
     owner = np.array(owner, dtype=np.int64)
     # each cut building's pieces are consecutive: its new range is its first piece's start to
-    # its last piece's end
-    first = np.r_[0, np.flatnonzero(owner[1:] != owner[:-1]) + 1]
-    last = np.r_[first[1:], len(owner)]
-    new = {b: (vs2[a], vs2[z], fs2[a], fs2[z]) for b, a, z in zip(owner[first].tolist(), first, last)}
+    # its last piece's end; one left out has none
+    new = {b: (0, 0, 0, 0) for b in cuts}
+    if len(owner):
+        first = np.r_[0, np.flatnonzero(owner[1:] != owner[:-1]) + 1]
+        last = np.r_[first[1:], len(owner)]
+        new.update({b: (vs2[a], vs2[z], fs2[a], fs2[z]) for b, a, z in zip(owner[first].tolist(), first, last)})
     Vb, Fb, vcount, fcount = [], [], np.diff(plan.vstart).copy(), np.diff(plan.fstart).copy()
     for b, (va, vz, fa, fz) in new.items():
         vcount[b], fcount[b] = vz - va, fz - fa

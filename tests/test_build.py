@@ -276,7 +276,10 @@ def test_no_building_stands_on_a_vehicle_lane(helsinki):
     """Inside every vehicle lane (centre and 35 % of its width to each side, every 2 m), no
     building's underside is less than 2 m above the ground: where an OSM footprint overlaps
     netconvert's lanes, the building's part over them is a passage (buildings.py, "Over the
-    roads"). Helsinki has both kinds: passages into yards and footprints over guessed lanes."""
+    roads"). Helsinki has both kinds: passages into yards and footprints over guessed lanes.
+    And no wall inside a surface turn's lane (``_buildings_on_turns``): before netgen 0.1.32
+    the 3 m underpass entrance of way 317502062, wholly over one and lower than a passage,
+    stood whole across it."""
     import trimesh
 
     from cosim.world import World
@@ -313,6 +316,7 @@ def test_no_building_stands_on_a_vehicle_lane(helsinki):
     low = tz[ti] < zr[pi] + 2.0
     assert not low.any(), f"{int(low.sum())} lane points under a building, e.g. at {P[pi[low][:3]].tolist()}"
     assert len(pi) > 0          # (passages over lanes: their undersides are high enough)
+    assert _buildings_on_turns(out, w) == []
 
 
 def test_rebuild_reuses_the_world(helsinki):
