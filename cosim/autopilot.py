@@ -552,11 +552,10 @@ class Autopilot:
         self._s_goal = None
         sim = self.sim
         if sim.goal_xy is not None:
-            last = path.edges[-1]
-            idx = [k for k, (_, e) in enumerate(path.lane_of) if e == last]
-            if idx:
-                k, s_goal, _ = path.project(sim.goal_xy[0], sim.goal_xy[1], hint=idx[0] + 20,
-                                            window=len(idx) + 20)
+            run = path.last_run(path.edges[-1])
+            if run is not None:
+                k, s_goal, _ = path.project(sim.goal_xy[0], sim.goal_xy[1], hint=run[0] + 20,
+                                            window=run[1] - run[0] + 20)
                 self._s_goal = float(s_goal)
             else:
                 self._s_goal = path.length

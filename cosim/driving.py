@@ -1381,6 +1381,19 @@ class LanePath:
             off -= self.held_lat(a)
         return (a, float(self.s[a] + t[j] * math.sqrt(float(L2[j]))), off)
 
+    def last_run(self, edge: str) -> tuple[int, int] | None:
+        """The points (i0, i1) of the path's last pass along ``edge`` (the goal's road: a route
+        that comes back to the road it starts on passes it twice), or None."""
+        k = len(self.lane_of) - 1
+        while k >= 0 and self.lane_of[k][1] != edge:
+            k -= 1
+        if k < 0:
+            return None
+        i1 = k + 1
+        while k > 0 and self.lane_of[k - 1][1] == edge:
+            k -= 1
+        return k, i1
+
     def _part(self, s0: float, s1: float) -> tuple[int, int]:
         """The points i0 .. i1 - 1 whose segments cover arc lengths s0 to s1 (project_many's,
         comes_within's)."""

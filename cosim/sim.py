@@ -460,7 +460,9 @@ class Simulation:
         route length counts the first and last roads whole, and its travel time is at the speed
         limits: "route 2143 m, ETA 54 s" for a drive of 1,305 m at 25 m/s on the Kouvola
         motorway.)"""
-        s_goal = float(path.project_many(np.array([gx]), np.array([gy]), 0.0, path.length)[0][0])
+        run = path.last_run(path.edges[-1])       # (the goal's road: the route ends on it)
+        s0 = float(path.s[run[0]]) if run is not None else 0.0
+        s_goal = float(path.project_many(np.array([gx]), np.array([gy]), s0, path.length)[0][0])
         if not math.isfinite(s_goal):
             s_goal = path.length
         ds = np.diff(np.minimum(path.s, s_goal))

@@ -1513,6 +1513,20 @@ class SumoTraffic(Component):
             street = ""
         return dict(lane=lane, pos=pos, x=x, y=y, dist=dist, street=street)
 
+    def _next_edges(self, edge: str) -> tuple[list[str], list[str]]:
+        """The roads the lanes of ``edge`` lead to: (not by a turnaround, by one). A route
+        takes a turnaround only where no other way goes (the car cannot make a tight one)."""
+        s = self._sim
+        ahead, back = {}, {}
+        try:
+            for i in range(s.edge.getLaneNumber(edge)):
+                for ln in s.lane.getLinks(f"{edge}_{i}"):
+                    turn = len(ln) >= 7 and str(ln[6]).lower() == "t"
+                    (back if turn else ahead)[ln[0].rsplit("_", 1)[0]] = True
+        except self._exc:
+            return [], []
+        return list(ahead), [e for e in back if e not in ahead]
+
     def _route_from(self, firsts, to_edge: str):
         """SUMO's fastest route from one of the edges ``firsts`` to ``to_edge``, or None."""
         best = None
@@ -1839,7 +1853,15 @@ class SumoTraffic(Component):
                 if not beyond_ok:
                     return dict(out, route=[], path=None)
                 out["goal"]["beyond"] = True
-            best = self._route_from(firsts, glane.rsplit("_", 1)[0])
+            gedge = glane.rsplit("_", 1)[0]
+            if not keep_lane and gedge == edge and self.lane_pos(glane, gx, gy) < pos:
+                # the goal behind the car on its own road: round the block back to it (SUMO's
+                # route from a road to itself is that road alone: a Monaco start and goal on
+                # one way gave "route 10 m", and the car stood short of a goal 70 m behind it)
+                (firsts, turns), head = self._next_edges(edge), [edge]
+                best = self._route_from(firsts, gedge) or self._route_from(turns, gedge)
+            else:
+                best = self._route_from(firsts, gedge)
             beyond = bool(out["goal"].get("beyond"))
             if best is None and (gdist <= max_goal_snap_m or beyond):
                 # the nearest road does not lead there (cut off where the OSM extract ends, say:

@@ -195,6 +195,64 @@ def test_a_start_facing_a_dead_end_turns_round_to_the_goal(kouvola):
     assert summary.ego_collisions == 0 and summary.distance_m > 250, summary.line()
 
 
+def test_a_goal_behind_the_car_on_its_own_road_is_reached_round_the_block(helsinki):
+    """A goal 40 m behind the start, on the start's own lane: SUMO's route from a road to
+    itself is that road alone, and the plan took it ("route 10 m" for a goal 70 m behind the
+    car on a Monaco one-way street; the car stood short of it for good). The route now leaves
+    the road and comes back to it (no turnaround: the car cannot make a tight one), and the
+    goal's distance is measured on the route's last pass along the road. On Helsinki's roads
+    of 100-250 m every such plan comes back to its road; on HEL_MID's (134 m) the car drives
+    round (2 km: the centre's one-way streets and its lights; 6 minutes) and arrives."""
+    sim = start_sim(helsinki, start=HEL_MID, speed_mps=10.0)
+    try:
+        tr = sim.traffic
+        S = tr.sumo
+        n = 0
+        for ln in S.lane.getIDList():
+            if ln.startswith(":") or not 100.0 < S.lane.getLength(ln) < 250.0 \
+                    or S.lane.getAllowed(ln) and "passenger" not in S.lane.getAllowed(ln):
+                continue
+            P = np.asarray(S.lane.getShape(ln), dtype=float)[:, :2]
+            d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(P, axis=0).T))])
+            gx, gy = (float(np.interp(d[-1] - 60.0, d, P[:, k])) for k in (0, 1))
+            plan = tr.plan_route(ln, d[-1] - 20.0, goal_xy=(gx, gy), max_goal_snap_m=5.0)
+            if plan["goal"]["lane"] != ln or not plan["route"]:
+                continue
+            edge = ln.rsplit("_", 1)[0]
+            assert plan["route"][0] == edge and plan["route"][-1] == edge and len(plan["route"]) > 2, \
+                (ln, plan["route"])
+            n += 1
+        assert n >= 10, n
+        lane = sim.snap_info["start_lane"]
+        P = np.asarray(S.lane.getShape(lane), dtype=float)[:, :2]
+        d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(P, axis=0).T))])
+        assert d[-1] > 120.0, d[-1]
+        pos = 100.0
+        sx, sy = (float(np.interp(pos, d, P[:, k])) for k in (0, 1))
+        gx, gy = (float(np.interp(pos - 40.0, d, P[:, k])) for k in (0, 1))
+        start, goal = (sim.world.frame.to_lonlat(x, y)[::-1] for x, y in ((sx, sy), (gx, gy)))
+    finally:
+        sim.teardown()
+    sim = start_sim(helsinki, start=tuple(map(float, start)), goal=tuple(map(float, goal)), speed_mps=10.0,
+                    duration_s=600)
+    try:
+        edge = lane.rsplit("_", 1)[0]
+        assert sim.snap_info["start_lane"].rsplit("_", 1)[0] == edge, sim.snap_info
+        assert sim.route[0] == edge and sim.route[-1] == edge and len(sim.route) > 2, sim.route
+        planned = sim.snap_info["route_length_m"]
+        # the rest of the road, the way round and the road again up to the goal: over 500 m
+        assert planned > 500.0, sim.snap_info
+        left = sim.route_left()
+        assert left is not None and abs(left[0] - planned) < 1.0, (left, planned)
+        summary = sim.run()
+        st = sim.vehicle.state()
+    finally:
+        sim.teardown()
+    assert summary.arrived and summary.ego_collisions == 0, summary.line()
+    assert summary.distance_m > 0.9 * planned, (summary.distance_m, planned)
+    assert math.hypot(st.x - gx, st.y - gy) < 15.0
+
+
 def test_a_goal_beyond_a_window_drives_towards_a_road_the_car_reaches(kouvola):
     """A streamed window's re-plan towards a goal beyond its roads (``beyond_ok``) routes to the
     road nearest the goal; where the car cannot reach that one (a Portland window's was the
