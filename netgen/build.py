@@ -682,6 +682,7 @@ class _Streams:
         self._surf_sender = None
         self.children = []
         self.lev = None             # the levelling's figures, where it ran
+        self.road_pts = None        # the road surface where cars drive (the buildings' passages)
         self._in_child = self._have_terrain = False
         if parallel:
             import multiprocessing as mp
@@ -752,9 +753,12 @@ class _Streams:
         (it claimed the levelling, :meth:`claim_level`), send it there and go on meshing;
         else level here, now (as without children), so that cosim-layers, busy with the
         scenery, finds the terrain ready."""
+        self.road_pts = pts[car]
         if self.parallel and self.next_index("level"):
             self._sup_w.send((pts, hw, car, tris, hold))
             return
+        if self.parallel:       # (cosim-layers writes the buildings: it needs the road surface)
+            self._sup_w.send((self.road_pts,))
         self._level(pts, hw, car, tris, hold, T)
 
     def _level(self, pts, hw, car, tris, hold, T: Timer) -> None:
@@ -835,6 +839,17 @@ class _Streams:
         if not self._support:
             raise BuildError("the roads' levelling support never came")
         self._level(*self._support[-1], T)
+
+    def road_points(self) -> np.ndarray:
+        """The road surface points where cars drive, (n, 3): in cosim-layers, from the support
+        the roads' process sent (all of it if this process levels, else these points)."""
+        if self.parallel and self._in_child:
+            self._receiver.join()
+            if not self._support:
+                raise BuildError("the roads' surface never came")
+            m = self._support[-1]
+            return m[0][m[2]] if len(m) == 5 else m[0]
+        return self.road_pts
 
     def wait_terrain(self) -> None:
         """Block until the levelled heights are in (then self.grid has them). In this
@@ -954,7 +969,7 @@ class _Buildings:
         self.chunks, self.bounds, self.bplan, self.grid = chunks, bounds, bplan, grid
         self.layouts = None
         self.prepared = {}
-        self.base = self.V = None
+        self.base = self.V = self.road_pts = None
 
     def counts(self) -> tuple:
         """(buildings, heights from tags, heights from levels, over a road) over all chunks."""
@@ -1009,11 +1024,16 @@ class _Buildings:
 
     def lift(self) -> None:
         """Every building's base on the final terrain, and its vertices lifted by it (once)."""
-        from .buildings import base_heights, lifted_vertices
+        from .buildings import base_heights, lifted_vertices, raise_passages
 
         if self.V is not None:
             return
         self.base = base_heights(self.bplan, self.grid.sample)
+        # (passages lower than a road's clearance over the road surface: raised, and their
+        # chunks' files, prepared with the old underside, prepared again)
+        raised = raise_passages(self.bplan, self.base, self.road_pts)
+        for k in set(self.bplan.chunk[raised].tolist()):
+            self.prepared.pop(k, None)
         self.V = lifted_vertices(self.bplan, self.base)
 
     def write_chunk(self, tmp: Path, k: int) -> dict:
@@ -1052,6 +1072,7 @@ class _Buildings:
                 return out
             if self.V is None:
                 streams.wait_terrain()
+                self.road_pts = streams.road_points()
             out[k] = self.write_chunk(tmp, k)
 
 

@@ -49,7 +49,10 @@ the road: the part over it (grown by 0.2 m) becomes a passage, its underside at 
 (on a slope, higher than above the base), or at the building's own ``min_height`` if higher,
 the rest standing on the ground as usual; where less than 1 m of the building would be left
 above that underside, the part over the road is left out (and so is a building wholly over
-the road). This is what OSM maps as ``tunnel=building_passage`` (a street through a block's
+the road). Once the roads' surface and the buildings' bases on the final terrain are known,
+:func:`raise_passages` lifts an underside standing 0.5 m or more short of 4.5 m over the road
+surface under it (a road's profile is not the DEM's ground: it is smoothed over steep terrain,
+or a deck over another road). This is what OSM maps as ``tunnel=building_passage`` (a street through a block's
 gateway), and it also settles footprints that netconvert's lanes run into (a narrow old-town
 street whose guessed lane and sidewalk widths are wider than the space between its mapped
 buildings: in Lauf, a wall 0.37 m from a lane's centre stopped the car). The record keeps the
@@ -94,6 +97,7 @@ PASSAGE_CLEARANCE_M = 4.5     # underside of a building's part over a road (see 
 PASSAGE_MARGIN_M = 0.2        # the road grown by this, for the cut
 PASSAGE_MIN_SOLID_M = 1.0     # an upper part thinner than this is left out
 PASSAGE_MIN_AREA_M2 = 0.1     # overlaps smaller than this are left alone
+PASSAGE_SLACK_M = 0.5         # raise_passages: a passage this much short of the clearance over the road stays
 ROOF_SLAB_M = 0.5
 SAMPLE_STEP_M = 2.0
 MAX_SAMPLES = 4000
@@ -540,18 +544,25 @@ def cut_passages(plan: "BuildingPlan", road_parts, ground=None, clearance: float
     order = np.argsort(bi, kind="stable")
     bi, pi = bi[order], pi[order]
     cuts, geoms, z0s, z1s, owner = [], [], [], [], []
+    over_piece, over_floating = {}, {}
     ub, ustart = np.unique(bi, return_index=True)
     for b, lo, hi in zip(ub.tolist(), ustart.tolist(), np.r_[ustart[1:], len(bi)].tolist()):
         rec = plan.records[b]
         low, high = rec["min_height_m"], rec["height_m"]
-        if plan.failed[b] or low >= clearance:
-            continue                        # (nothing of it stands lower than a passage)
+        if plan.failed[b]:
+            continue
         road = shapely.union_all(parts[pi[lo:hi]])
         if margin > 0:
             road = road.buffer(margin, quad_segs=2)
         fp = fps[b]
         over = polygonal(shapely.intersection(fp, road), PASSAGE_MIN_AREA_M2)
         if over is None:
+            continue
+        if low >= clearance:
+            # nothing of it stands lower than a passage here; over a road that climbs under it
+            # (a Lauf roof 4.5 m over its lowest ground stood 1.5 m over a road's higher end),
+            # raise_passages lifts it whole
+            over_floating[b] = (over, float(low))
             continue
         rest = polygonal(shapely.difference(fp, road), PASSAGE_MIN_AREA_M2)
         rise = 0.0
@@ -574,6 +585,10 @@ def cut_passages(plan: "BuildingPlan", road_parts, ground=None, clearance: float
             z1s.append(z)
             owner.append(b)
         rec["passage_from_m"] = round(float(top), 2) if upper else None
+        if upper:
+            over_piece[b] = (over, float(top), len(geoms) - 1)
+    for b, (over, low) in over_floating.items():       # (its vertices all stay as they are)
+        plan.passages[b] = (over, low, int(plan.vstart[b + 1] - plan.vstart[b]))
     if not cuts:
         return np.zeros(0, np.int64)
     if geoms:
@@ -608,7 +623,55 @@ def cut_passages(plan: "BuildingPlan", road_parts, ground=None, clearance: float
     plan.faces = np.concatenate(Fb).astype(np.int64) if Fb else np.zeros((0, 3), np.int64)
     plan.vstart, plan.fstart = vstart, fstart
     plan.failed = fstart[1:] == fstart[:-1]
+    for b, (over, top, g) in over_piece.items():
+        plan.passages[b] = (over, top, int(vs2[g + 1] - vs2[g]))
     return np.array(sorted(new), dtype=np.int64)
+
+
+def raise_passages(plan: "BuildingPlan", base: np.ndarray, road_pts, clearance: float = PASSAGE_CLEARANCE_M) -> np.ndarray:
+    """Once the roads' surface and the buildings' bases on the final terrain are known: every
+    passage (:func:`cut_passages`) whose underside stands less than ``clearance`` less
+    PASSAGE_SLACK_M over the road surface points under it (``road_pts`` (n, 3), where cars
+    drive) is raised to ``clearance`` over them,
+    keeping at least PASSAGE_MIN_SOLID_M of solid (above the building's roof if need be).
+    The cut measures the clearance over the natural ground, and a road stands higher where
+    its profile is smoothed over a steep or coarse DEM, or on a deck over another road: in
+    Monaco the Espace Saint Antoine's passage was 1.2 m under Liaison Marquet's upper way
+    (its base on the ground levelled down to the lower way, 5 m under), and a car stood before
+    it for good. Changes the plan's vertices and records in place; returns the buildings
+    raised."""
+    if not plan.passages or road_pts is None or not len(road_pts):
+        return np.zeros(0, np.int64)
+    road_pts = np.asarray(road_pts, dtype=float)
+    order = np.argsort(road_pts[:, 0], kind="stable")
+    X, Y, Z = road_pts[order, 0], road_pts[order, 1], road_pts[order, 2]
+    raised = []
+    for b in sorted(plan.passages):
+        over, top, nv = plan.passages[b]
+        # (the road points in its box, then in it (the road grown by PASSAGE_MARGIN_M, cut by
+        # the footprint): a tree of a city's road points cost 100 ms)
+        x0, y0, x1, y1 = over.bounds
+        i0, i1 = np.searchsorted(X, [x0, x1])
+        k = i0 + np.flatnonzero((Y[i0:i1] >= y0) & (Y[i0:i1] <= y1))
+        if not len(k):
+            continue
+        k = k[shapely.contains_xy(over, X[k], Y[k])]
+        if not len(k):
+            continue
+        need = float(Z[k].max()) + clearance - float(base[b])
+        if need <= top + PASSAGE_SLACK_M:
+            continue
+        rec = plan.records[b]
+        v1 = int(plan.vstart[b + 1])
+        piece = plan.vertices[v1 - nv:v1]           # (a prism: its floor's vertices, its roof's)
+        z0, z1 = float(piece[:, 2].min()), float(piece[:, 2].max())
+        bottom = piece[:, 2] <= z0 + 1e-6
+        piece[~bottom, 2] = max(z1, need + PASSAGE_MIN_SOLID_M)
+        piece[bottom, 2] = need
+        plan.passages[b] = (plan.passages[b][0], need, nv)
+        rec["passage_from_m"] = round(need, 2)
+        raised.append(b)
+    return np.array(raised, dtype=np.int64)
 
 
 @dataclass
@@ -635,6 +698,9 @@ class BuildingPlan:
     sample_x: np.ndarray
     sample_y: np.ndarray
     sample_owner: np.ndarray
+    # cut_passages: building -> (its part over the road, that part's underside over the base,
+    # its number of vertices: the building's last), for raise_passages
+    passages: dict = field(default_factory=dict)
 
 
 def plan_buildings(features: OSMFeatures, chunk_bounds_list) -> BuildingPlan:
