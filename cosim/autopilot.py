@@ -497,15 +497,21 @@ class Autopilot:
         waiting for the car, which waited for it, until SUMO teleported it 120 s later; seed 1:
         the car waited for a car standing on a lane over its path, which waited behind a car
         SUMO had merge ahead of it, which waited behind the car). That vehicle is taken out of SUMO (``SumoTraffic.release_standoff``:
-        SUMO's own remedy for a jam, sooner), once."""
+        SUMO's own remedy for a jam, sooner), once. Also a vehicle the car follows (any other
+        lead), standing within STANDOFF_GAP_M, where SUMO has it wait for the car through a
+        queue (``circle``: Monaco, seed 7, a junction cluster: the car waited for a vehicle
+        standing across its path, which waited for one that stood behind the car, in the
+        queue SUMO kept behind it; SUMO teleported one every 120 s, and the car drove 114 m in
+        300 s); tried again every second while the circle is not closed."""
         who = self.sweep[1] if self.sweep is not None and self.reason.startswith("clearance") else None
-        if who is None and self.lead is not None and self.lead.source == "conflict" \
-                and self.lead.gap < STANDOFF_GAP_M:
+        circle = False
+        if who is None and self.lead is not None and self.lead.gap < STANDOFF_GAP_M and self.lead.actor \
+                and self.lead.kind == "vehicle":
             # (waited for on a lane over the path: Monaco, seed 1; also while the binding
             # reason flips to "curve" as the car creeps up to it: the Kouvola motorway's
             # junction cluster 2453037388, where the car crept at 0.2 m/s and the wait began
             # again at each flip, for 95 s, until SUMO teleported a vehicle)
-            who = self.lead.actor
+            who, circle = self.lead.actor, self.lead.source != "conflict"
         if who is None or v > STANDOFF_CREEP_MPS:
             self._standoff_with = None
             return
@@ -525,11 +531,18 @@ class Autopilot:
         release = getattr(tr, "release_standoff", None) if tr is not None else None
         if release is None:
             return
-        self._released.add(who)
-        if release(who, STANDOFF_S):
-            self.stats.standoffs += 1
-            self.stats.events.append((round(t, 2), "standoff", f"{who} taken out after {t - self._standoff_with[1]:.0f} s"))
-            log.info("standoff with %s at t=%.1f s: taken out of SUMO", who, t)
+        if circle:
+            if not release(who, STANDOFF_S, circle=True):
+                self._standoff_with = (who, self._standoff_with[1] + 1.0)     # (not yet: again in 1 s)
+                return
+            self._released.add(who)
+        else:
+            self._released.add(who)
+            if not release(who, STANDOFF_S):
+                return
+        self.stats.standoffs += 1
+        self.stats.events.append((round(t, 2), "standoff", f"{who} taken out after {t - self._standoff_with[1]:.0f} s"))
+        log.info("standoff with %s at t=%.1f s: taken out of SUMO", who, t)
 
     # --- perception ----------------------------------------------------------------------
     def _road_pitch(self, st) -> float:

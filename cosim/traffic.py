@@ -840,17 +840,21 @@ class SumoTraffic(Component):
             return False
         return False
 
-    def release_standoff(self, vid: str, waited_s: float) -> bool:
+    def release_standoff(self, vid: str, waited_s: float, circle: bool = False) -> bool:
         """Take vehicle `vid` out of SUMO if it has stood `waited_s` (less a second) for no
         reason SUMO shows: no red or yellow light within 30 m ahead of it, no standing vehicle
         within 10 m ahead but the ego or one that stands behind the ego (up to STANDOFF_CHAIN
         of them, each within 10 m of the next), no stop of its own. The autopilot asks this after a
         standoff (the car waits for it, it waits for the car; SUMO would teleport it after
-        ``time_to_teleport``). Returns whether it was taken out."""
+        ``time_to_teleport``). With ``circle``, only where SUMO has it wait for the ego
+        (:meth:`waits_for_ego`: a vehicle the ego follows, not one beside its path). Returns
+        whether it was taken out."""
         s = self._require()
         tc = self._tc
         try:
             if vid == EGO_ID or vid not in s.vehicle.getIDList():
+                return False
+            if circle and not self.waits_for_ego(vid):
                 return False
             if s.vehicle.getWaitingTime(vid) < waited_s - 1.0 or s.vehicle.isStopped(vid):
                 return False

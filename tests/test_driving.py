@@ -1603,6 +1603,71 @@ def test_a_standoff_with_a_vehicle_in_the_sweep_ends_with_it_taken_out_of_sumo(h
         sim.teardown()
 
 
+def test_a_circle_of_waits_through_a_queue_behind_the_car_ends_with_the_lead_taken_out(helsinki):
+    """The car follows a vehicle that stands before it (its lidar's lead), and SUMO has that
+    vehicle wait for one that stands in the queue behind the car (Monaco, seed 7: in a
+    junction cluster, a vehicle standing across the car's path waited for the queue SUMO kept
+    behind the car; SUMO teleported one every 120 s, and the car drove 114 m in 300 s). After
+    STANDOFF_S the lead is taken out, once SUMO's chain of leaders from it reaches the car;
+    not while the queue stands too far behind the car (the circle is not closed), then it is."""
+    from cosim.autopilot import STANDOFF_S, Lead
+    from cosim.traffic import ActorsSnapshot, EGO_ID
+
+    sim = start_sim(helsinki, start=HEL_MID, speed_mps=10.0)
+    try:
+        for _ in range(60):                              # the car 40 m or so into its road
+            sim.step()
+        ap, tr = sim.driver, sim.traffic
+        s = tr.sumo
+        lane, pos = s.vehicle.getLaneID(EGO_ID), s.vehicle.getLanePosition(EGO_ID)
+        assert not lane.startswith(":") and pos > 36.0, (lane, pos)
+        edge = lane.rsplit("_", 1)[0]
+        s.route.add("r_queue", [edge] + list(sim.route[sim.route.index(edge) + 1:][:2]))
+        for vid, back in (("queued", 22.0), ("circler", 32.0)):
+            s.vehicle.add(vid, "r_queue", typeID="DEFAULT_VEHTYPE", depart="now", departPos=f"{pos - back:.1f}",
+                          departSpeed="0", departLane=lane.rsplit("_", 1)[1])
+        tr.step()                                        # (in)
+        assert {"queued", "circler"} <= set(s.vehicle.getIDList())
+        one = lambda v: np.array([v])                    # noqa: E731
+
+        def snap(speed=0.0):
+            return ActorsSnapshot(0.0, np.array(["circler"], dtype=object), np.array(["passenger"], dtype=object),
+                                  one(0.0), one(0.0), one(0.0), one(4.5), one(1.8), one(1.5), one(speed), one(0.0),
+                                  np.array([lane], dtype=object))
+
+        ap.sweep, ap.reason = None, "lead vehicle"
+        ap.lead = Lead(4.0, 0.0, "vehicle", "lidar", "circler")
+        t = 0.0
+
+        def stand(seconds):
+            nonlocal t
+            end = t + seconds
+            while t < end:
+                for vid in (EGO_ID, "queued") + (("circler",) if ap.stats.standoffs == 0 else ()):
+                    s.vehicle.setSpeed(vid, 0.0)
+                tr.step()
+                ap._standoff(0.0, t, snap())
+                t += 0.1
+
+        # the queue 17.5 m behind the car: SUMO's chain of leaders (10 m) does not reach it
+        stand(STANDOFF_S + 3.0)
+        assert ap.stats.standoffs == 0 and "circler" in s.vehicle.getIDList()
+        assert not tr.waits_for_ego("circler")
+        # the queue up behind the car: the chain circler -> queued -> the car, and the lead,
+        # standing longer than STANDOFF_S, is taken out within a second or two
+        s.vehicle.moveTo("queued", lane, pos - 8.0)
+        s.vehicle.moveTo("circler", lane, pos - 16.0)
+        tr.step()
+        assert tr.waits_for_ego("circler")
+        stand(2.5)
+        assert ap.stats.standoffs == 1
+        assert [e for e in ap.stats.events if e[1] == "standoff"][0][2].startswith("circler")
+        tr.step()
+        assert "circler" not in s.vehicle.getIDList() and "queued" in s.vehicle.getIDList()
+    finally:
+        sim.teardown()
+
+
 def test_a_car_already_on_a_crossing_junction_lane_goes_on_when_it_clears_it_in_time(helsinki):
     """A junction lane that runs over the path (two junctions drawn into each other) is a
     stretch the car stops before while a vehicle on it would meet the car there. When the car
