@@ -57,7 +57,7 @@ from netgen.errors import SimulationError
 
 from .component import Component
 from .config import LANE_CHANGE_S
-from .driving import _onto_segments, _via_lanes, run_steps as _run_steps
+from .driving import _onto_segments, _via_lanes, run_steps as _run_steps, undrivable_steps, without_turnarounds
 
 log = logging.getLogger(__name__)
 
@@ -1531,16 +1531,22 @@ class SumoTraffic(Component):
             return [], []
         return list(ahead), [e for e in back if e not in ahead]
 
-    def _route_from(self, firsts, to_edge: str):
-        """SUMO's fastest route from one of the edges ``firsts`` to ``to_edge``, or None."""
-        best = None
+    def _route_from(self, firsts, to_edge: str, head=None):
+        """SUMO's fastest route from one of the edges ``firsts`` to ``to_edge``, or None. With
+        ``head`` (the edges before), the fastest of those with the fewest steps the car cannot
+        drive (:func:`cosim.driving.undrivable_steps`: SUMO's router takes U-turns over a
+        junction's 0.2 m edges; a Monaco route back round to the start's road took two)."""
+        best, key = None, None
         for first in firsts:
             try:
                 r = self._sim.simulation.findRoute(first, to_edge, vType="DEFAULT_VEHTYPE")
             except self._exc:
                 continue
-            if r.edges and (best is None or r.travelTime < best.travelTime):
-                best = r
+            if not r.edges:
+                continue
+            k = (0 if head is None else len(undrivable_steps(self._sim, list(head) + list(r.edges))), r.travelTime)
+            if best is None or k < key:
+                best, key = r, k
         return best
 
     def _lanes_near(self, x: float, y: float, radius: float, vclass: str = "passenger", most: int = 12) -> list:
@@ -1858,14 +1864,26 @@ class SumoTraffic(Component):
                     return dict(out, route=[], path=None)
                 out["goal"]["beyond"] = True
             gedge = glane.rsplit("_", 1)[0]
-            if not keep_lane and gedge == edge and self.lane_pos(glane, gx, gy) < pos:
+            turns = ()
+            loop = not keep_lane and gedge == edge and self.lane_pos(glane, gx, gy) < pos
+            if loop:
                 # the goal behind the car on its own road: round the block back to it (SUMO's
                 # route from a road to itself is that road alone: a Monaco start and goal on
                 # one way gave "route 10 m", and the car stood short of a goal 70 m behind it)
                 (firsts, turns), head = self._next_edges(edge), [edge]
-                best = self._route_from(firsts, gedge) or self._route_from(turns, gedge)
-            else:
-                best = self._route_from(firsts, gedge)
+
+            def route_to(to_edge):
+                if not loop:
+                    return self._route_from(firsts, to_edge)
+                r = self._route_from(firsts, to_edge, head) or self._route_from(turns, to_edge, head)
+                if r is not None and undrivable_steps(s, without_turnarounds(s, head + list(r.edges))[0]):
+                    # (only by a turn the car cannot make, with no way round it: Monaco's Liaison
+                    # Marquet, a passage into the stadium, left by U-turns over 0.2 m edges; the
+                    # car ran 5 m wide of the first into a sign)
+                    return None
+                return r
+
+            best = route_to(gedge)
             beyond = bool(out["goal"].get("beyond"))
             if best is None and (gdist <= max_goal_snap_m or beyond):
                 # the nearest road does not lead there (cut off where the OSM extract ends, say:
@@ -1878,7 +1896,7 @@ class SumoTraffic(Component):
                 for d, ln in self._lanes_near(gx, gy, radius):
                     if ln.rsplit("_", 1)[0] == glane.rsplit("_", 1)[0]:
                         continue
-                    best = self._route_from(firsts, ln.rsplit("_", 1)[0])
+                    best = route_to(ln.rsplit("_", 1)[0])
                     if best is not None:
                         out["goal"] = self._goal_at(self._lane_point(ln, self.lane_pos(ln, gx, gy), gx, gy))
                         if beyond and out["goal"]["dist"] > max_goal_snap_m:
