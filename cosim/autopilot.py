@@ -249,6 +249,7 @@ class Autopilot:
         self._path_lanes: set = set()     # the lanes of the path
         self._path_bridge = None          # per path point: on a bridge's lane (None: no bridge)
         self._standoff_with = None        # (vehicle, since): the car stands before it for its sweep
+        self._standoff_next = 0.0         # a circle not yet closed (_standoff): tried again from then
         self._released: set = set()       # vehicles taken out after a standoff (_standoff)
         self._path_rises = None           # per path point: how high it stands over the terrain (_path_rises_at)
         self._path_edges: set = set()     # the edges of the path
@@ -523,9 +524,9 @@ class Autopilot:
             self._standoff_with = None
             return
         if self._standoff_with is None or self._standoff_with[0] != who:
-            self._standoff_with = (who, t)
+            self._standoff_with, self._standoff_next = (who, t), 0.0
             return
-        if t - self._standoff_with[1] < STANDOFF_S or who in self._released:
+        if t - self._standoff_with[1] < STANDOFF_S or who in self._released or t < self._standoff_next:
             return
         tr = getattr(self.sim, "traffic", None)
         release = getattr(tr, "release_standoff", None) if tr is not None else None
@@ -533,7 +534,7 @@ class Autopilot:
             return
         if circle:
             if not release(who, STANDOFF_S, circle=True):
-                self._standoff_with = (who, self._standoff_with[1] + 1.0)     # (not yet: again in 1 s)
+                self._standoff_next = t + 1.0           # (not yet: again in a second)
                 return
             self._released.add(who)
         else:
