@@ -1483,6 +1483,22 @@ def test_routes_go_around_tunnels_and_turns_the_car_cannot_make(monaco):
         sim.teardown()
 
 
+def _first_sharp_turn(sim) -> tuple[float, float]:
+    """The first sharp turn of the car's path ahead (the heading changes by more than 60
+    degrees within 15 m): its side (+1 left, -1 right: where its inside is) and the arc length
+    of its apex (where the heading turns fastest)."""
+    path = sim.path
+    st = sim.vehicle.state()
+    s_car = s_of(sim, st.x, st.y)[0]
+    s0 = next(float(u) for u in np.arange(s_car + 10.0, path.length - 20.0, 0.5)
+              if abs(math.remainder(path.heading_at(u + 15.0) - path.heading_at(u), 2 * math.pi))
+              > math.radians(60))
+    turn = math.remainder(path.heading_at(s0 + 15.0) - path.heading_at(s0), 2 * math.pi)
+    s_apex = max(np.arange(s0, s0 + 15.0, 0.5), key=lambda u: abs(math.remainder(
+        path.heading_at(u + 2.5) - path.heading_at(u - 2.5), 2 * math.pi)))
+    return (1.0 if turn > 0 else -1.0), float(s_apex)
+
+
 def test_a_car_standing_inside_a_turn_beside_the_corridor_stops_the_car_before_its_sweep_touches_it(helsinki):
     """In a turn tighter than the car follows, pure pursuit cuts the corner: a vehicle
     standing inside the turn, in a lane of its own beside the path, is in the car's way though
@@ -1497,17 +1513,7 @@ def test_a_car_standing_inside_a_turn_beside_the_corridor_stops_the_car_before_i
     sim = start_sim(helsinki, start=HEL_MID, goal=(60.170763, 24.948623))     # a right turn 420 m on
     try:
         ap, path = sim.driver, sim.path
-        st = sim.vehicle.state()
-        s_car = s_of(sim, st.x, st.y)[0]
-        # the first sharp turn ahead: the heading changes by > 60 degrees within 15 m
-        s0 = next(float(u) for u in np.arange(s_car + 10.0, path.length - 20.0, 0.5)
-                  if abs(math.remainder(path.heading_at(u + 15.0) - path.heading_at(u), 2 * math.pi))
-                  > math.radians(60))
-        turn = math.remainder(path.heading_at(s0 + 15.0) - path.heading_at(s0), 2 * math.pi)
-        side = 1.0 if turn > 0 else -1.0                 # + = a left turn: its inside is to the left
-        # the apex: where the heading turns fastest
-        s_apex = max(np.arange(s0, s0 + 15.0, 0.5), key=lambda u: abs(math.remainder(
-            path.heading_at(u + 2.5) - path.heading_at(u - 2.5), 2 * math.pi)))
+        side, s_apex = _first_sharp_turn(sim)
         s_e = float(s_apex) - 7.0                        # the car 7 m before the apex at 3 m/s
         ex, ey = path.point_at(s_e)
         car = types.SimpleNamespace(x=float(ex), y=float(ey), yaw=path.heading_at(s_e), speed=3.0, steer=0.0)
@@ -2379,15 +2385,7 @@ def test_the_car_steers_closely_while_it_stops_for_its_sweep(helsinki):
     sim = start_sim(helsinki, start=HEL_MID, goal=(60.170763, 24.948623))     # a right turn 420 m on
     try:
         ap, path = sim.driver, sim.path
-        st = sim.vehicle.state()
-        s_car = s_of(sim, st.x, st.y)[0]
-        s0 = next(float(u) for u in np.arange(s_car + 10.0, path.length - 20.0, 0.5)
-                  if abs(math.remainder(path.heading_at(u + 15.0) - path.heading_at(u), 2 * math.pi))
-                  > math.radians(60))
-        turn = math.remainder(path.heading_at(s0 + 15.0) - path.heading_at(s0), 2 * math.pi)
-        side = 1.0 if turn > 0 else -1.0                 # + = a left turn: its inside is to the left
-        s_apex = float(max(np.arange(s0, s0 + 15.0, 0.5), key=lambda u: abs(math.remainder(
-            path.heading_at(u + 2.5) - path.heading_at(u - 2.5), 2 * math.pi))))
+        side, s_apex = _first_sharp_turn(sim)
         s_e = s_apex - 4.0
         # the car 0.5 m outside the path (it runs wide), heading along it: the sweep rolls
         px, py = path.point_at(s_e)
