@@ -192,6 +192,12 @@ class DrivingStats:
                 "time_gap_p5_s": round(float(np.percentile(tg, 5)), 2) if len(tg) else None}
 
 
+def _carried_id(vid: str) -> str:
+    """A vehicle's id without the generation a network swap gives it ("veh973~1" -> "veh973":
+    ``SumoTraffic.swap_adopt``)."""
+    return vid.split("~", 1)[0]
+
+
 class Autopilot:
     """The default driver (module doc). ``lidar``: use the ray sensor (needs the PyBullet
     world); ``time_gap``: the ACC's time gap (s, at least 1.5)."""
@@ -523,9 +529,12 @@ class Autopilot:
         if k is None or actors.kind[k] == "person" or float(actors.speed[k]) > STANDOFF_CREEP_MPS:
             self._standoff_with = None
             return
-        if self._standoff_with is None or self._standoff_with[0] != who:
+        if self._standoff_with is None or _carried_id(self._standoff_with[0]) != _carried_id(who):
             self._standoff_with, self._standoff_next = (who, t), 0.0
             return
+        # (the same vehicle carried over a network swap, "veh973" -> "veh973~1": its wait goes on;
+        # it began again, and a Lauf car waited 40 s before a bus in place of 20 s)
+        self._standoff_with = (who, self._standoff_with[1])
         if t - self._standoff_with[1] < STANDOFF_S or who in self._released or t < self._standoff_next:
             return
         tr = getattr(self.sim, "traffic", None)

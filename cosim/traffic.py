@@ -846,7 +846,8 @@ class SumoTraffic(Component):
         within 10 m ahead but the ego or one that stands behind the ego (up to STANDOFF_CHAIN
         of them, each within 10 m of the next), no stop of its own. The autopilot asks this after a
         standoff (the car waits for it, it waits for the car; SUMO would teleport it after
-        ``time_to_teleport``). With ``circle``, only where SUMO has it wait for the ego
+        ``time_to_teleport``). One carried over a network swap (``~`` in its id) has stood all
+        the while since it came into this SUMO. With ``circle``, only where SUMO has it wait for the ego
         (:meth:`waits_for_ego`: a vehicle the ego follows, not one beside its path). Returns
         whether it was taken out."""
         s = self._require()
@@ -856,7 +857,11 @@ class SumoTraffic(Component):
                 return False
             if circle and not self.waits_for_ego(vid):
                 return False
-            if s.vehicle.getWaitingTime(vid) < waited_s - 1.0 or s.vehicle.isStopped(vid):
+            wait = s.vehicle.getWaitingTime(vid)
+            if wait < waited_s - 1.0 and ("~" not in vid
+                                          or wait < s.simulation.getTime() - s.vehicle.getDeparture(vid) - 1.0):
+                return False            # (one carried over a swap: standing all the while since)
+            if s.vehicle.isStopped(vid):
                 return False
             tls = s.vehicle.getNextTLS(vid)
             if tls and tls[0][2] < 30.0 and tls[0][3] in "rRyYu":

@@ -1617,6 +1617,52 @@ def test_a_standoff_with_a_vehicle_in_the_sweep_ends_with_it_taken_out_of_sumo(h
         sim.teardown()
 
 
+def test_a_standoff_goes_on_when_a_network_swap_renames_the_vehicle(helsinki):
+    """A network swap carries the vehicles near the car into the new SUMO under a new id
+    ("veh973" -> "veh973~1") with SUMO's waiting time at 0. The standoff's wait went on from 0
+    too: a Lauf car waited 40 s before a bus that waited for it, in place of 20 s. Now the
+    autopilot's wait goes on across the new id, and SUMO's check takes a carried vehicle that
+    has stood all the while since it came in: here it comes in 10 s into the standoff and is
+    taken out at STANDOFF_S, not 10 s later."""
+    from cosim.autopilot import STANDOFF_S
+    from cosim.traffic import ActorsSnapshot
+
+    sim = start_sim(helsinki, start=HEL_MID)
+    try:
+        ap, tr = sim.driver, sim.traffic
+        s = tr.sumo
+        lane = max((ln for ln in s.lane.getIDList() if not ln.startswith(":")
+                    and "passenger" in (s.lane.getAllowed(ln) or ("passenger",))), key=s.lane.getLength)
+        s.route.add("r_carried", [lane.rsplit("_", 1)[0]])
+        one = lambda v: np.array([v])                    # noqa: E731
+
+        def snap(vid):
+            return ActorsSnapshot(0.0, np.array([vid], dtype=object), np.array(["passenger"], dtype=object),
+                                  one(0.0), one(0.0), one(0.0), one(4.5), one(1.8), one(1.5), one(0.0), one(0.0),
+                                  np.array([lane], dtype=object))
+
+        t, taken = 0.0, None
+        while t < STANDOFF_S + 12.0 and taken is None:
+            if abs(t - 10.0) < 1e-6:                     # the swap: the vehicle comes in anew
+                s.vehicle.add("swapped~1", "r_carried", typeID="DEFAULT_VEHTYPE", depart="now", departPos="30",
+                              departSpeed="0", departLane=lane.rsplit("_", 1)[1])
+            vid = "swapped" if t < 10.0 else "swapped~1"
+            if t > 10.0:
+                s.vehicle.setSpeed(vid, 0.0)
+            ap.sweep, ap.reason = (0.0, vid, "vehicle"), "clearance vehicle"
+            ap._standoff(0.0, t, snap(vid))
+            if ap.stats.standoffs:
+                taken = t
+            tr.step()
+            t = round(t + 0.1, 1)
+        assert taken is not None and taken < STANDOFF_S + 1.5, taken
+        assert [e for e in ap.stats.events if e[1] == "standoff"][0][2].startswith("swapped~1 taken out after 2")
+        tr.step()
+        assert "swapped~1" not in s.vehicle.getIDList()
+    finally:
+        sim.teardown()
+
+
 def test_a_circle_of_waits_through_a_queue_behind_the_car_ends_with_the_lead_taken_out(helsinki):
     """The car follows a vehicle that stands before it (its lidar's lead), and SUMO has that
     vehicle wait for one that stands in the queue behind the car (Monaco, seed 7: in a
