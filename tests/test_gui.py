@@ -782,12 +782,16 @@ def test_pybullet_window_keeps_drawing_the_world_when_wasd_are_pressed(tmp_path,
     xvfb = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", "1024x768x24", "-fbdir", str(tmp_path), "-nolisten", "tcp"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        for _ in range(100):
-            if (x11 / f"X{n}").exists():
-                break
-            time.sleep(0.1)
+        from cosim.display import display_problem
+
         env = dict(os.environ, DISPLAY=f":{n}")
         env.pop("QT_QPA_PLATFORM", None)
+        # (until the server takes a connection, not only until its socket file is there: on a
+        # loaded machine, the suite's other worker busy, PyBullet once found no X server)
+        t_end = time.monotonic() + 60.0
+        while display_problem(env) is not None and xvfb.poll() is None and time.monotonic() < t_end:
+            time.sleep(0.1)
+        assert display_problem(env) is None, f"Xvfb :{n} did not come up ({display_problem(env)})"
         r = subprocess.run([sys.executable, "-c", _WINDOW_SCRIPT, str(tmp_path / "Xvfb_screen0"), str(kouvola_world.path)],
                            capture_output=True, text=True, timeout=300, env=env,
                            cwd=Path(__file__).resolve().parents[1])
