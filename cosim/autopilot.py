@@ -73,7 +73,7 @@ from .driving import (PurePursuit, SpeedController, _drivable_lanes, _resample, 
                       plan_speed, stop_speed)
 from .mirror import LEVEL_M      # (levels more than this apart: a deck and the road under it)
 from .sumo_process import NOT_YET
-from .traffic import NETWORK_READS, STANDOFF_CREEP_MPS, _boxes_overlap
+from .traffic import NETWORK_READS, STANDOFF_CREEP_MPS, _boxes_overlap, carried_id
 from .vehicle import STEER_RATE, WHEELBASE
 
 log = logging.getLogger("cosim.autopilot")
@@ -190,12 +190,6 @@ class DrivingStats:
                 "sweeps": self.sweeps, "rollbacks": self.rollbacks, "standoffs": self.standoffs,
                 "lane_change_waits": self.lane_change_waits,
                 "time_gap_p5_s": round(float(np.percentile(tg, 5)), 2) if len(tg) else None}
-
-
-def _carried_id(vid: str) -> str:
-    """A vehicle's id without the generation a network swap gives it ("veh973~1" -> "veh973":
-    ``SumoTraffic.swap_adopt``)."""
-    return vid.split("~", 1)[0]
 
 
 class Autopilot:
@@ -529,7 +523,7 @@ class Autopilot:
         if k is None or actors.kind[k] == "person" or float(actors.speed[k]) > STANDOFF_CREEP_MPS:
             self._standoff_with = None
             return
-        if self._standoff_with is None or _carried_id(self._standoff_with[0]) != _carried_id(who):
+        if self._standoff_with is None or carried_id(self._standoff_with[0]) != carried_id(who):
             self._standoff_with, self._standoff_next = (who, t), 0.0
             return
         # (the same vehicle carried over a network swap, "veh973" -> "veh973~1": its wait goes on;

@@ -158,6 +158,12 @@ def _boxes_overlap(a, b, margin: float = 0.0) -> bool:
     return True
 
 
+def carried_id(vid: str) -> str:
+    """A vehicle's id without the generation a network swap gives the vehicles it carries into
+    the new SUMO (``swap_adopt``: "veh973" -> "veh973~1"; "veh973~1" -> "veh973~2")."""
+    return vid.split("~", 1)[0]
+
+
 def _cannot_stop(gap: float, closing: float) -> bool:
     """Whether a vehicle ``gap`` m behind another that appears at once, closing on it at
     ``closing`` m/s, cannot stop before it at a normal deceleration (EGO_INSERT_DECEL, 1 m to
@@ -846,7 +852,7 @@ class SumoTraffic(Component):
         within 10 m ahead but the ego or one that stands behind the ego (up to STANDOFF_CHAIN
         of them, each within 10 m of the next), no stop of its own. The autopilot asks this after a
         standoff (the car waits for it, it waits for the car; SUMO would teleport it after
-        ``time_to_teleport``). One carried over a network swap (``~`` in its id) has stood all
+        ``time_to_teleport``). One carried over a network swap (:func:`carried_id`) has stood all
         the while since it came into this SUMO. With ``circle``, only where SUMO has it wait for the ego
         (:meth:`waits_for_ego`: a vehicle the ego follows, not one beside its path). Returns
         whether it was taken out."""
@@ -858,7 +864,7 @@ class SumoTraffic(Component):
             if circle and not self.waits_for_ego(vid):
                 return False
             wait = s.vehicle.getWaitingTime(vid)
-            if wait < waited_s - 1.0 and ("~" not in vid
+            if wait < waited_s - 1.0 and (carried_id(vid) == vid
                                           or wait < s.simulation.getTime() - s.vehicle.getDeparture(vid) - 1.0):
                 return False            # (one carried over a swap: standing all the while since)
             if s.vehicle.isStopped(vid):
@@ -2295,7 +2301,7 @@ class SumoTraffic(Component):
         self.stats = carry["stats"]
         mapping: dict[str, str] = {}
         for k in kept:
-            new_id = f"{k.old_id.split('~')[0]}~{self._generation}"
+            new_id = f"{carried_id(k.old_id)}~{self._generation}"
             try:
                 if self._insert_kept(k, new_id):
                     mapping[k.old_id] = new_id

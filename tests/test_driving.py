@@ -1545,6 +1545,23 @@ def test_a_car_standing_inside_a_turn_beside_the_corridor_stops_the_car_before_i
         sim.teardown()
 
 
+def _longest_car_lane(sumo) -> str:
+    """The longest lane outside junctions that passenger cars may use."""
+    return max((ln for ln in sumo.lane.getIDList() if not ln.startswith(":")
+                and "passenger" in (sumo.lane.getAllowed(ln) or ("passenger",))), key=sumo.lane.getLength)
+
+
+def _one_actor(vid: str, x: float = 0.0, y: float = 0.0, yaw: float = 0.0, speed: float = 0.0,
+               kind: str = "passenger", lane: str = "x_0"):
+    """A snapshot of one 4.5 x 1.8 m actor, as the mirror's snapshots give it."""
+    from cosim.traffic import ActorsSnapshot
+
+    one = lambda v: np.array([v])                        # noqa: E731
+    return ActorsSnapshot(0.0, np.array([vid], dtype=object), np.array([kind], dtype=object), one(x), one(y),
+                          one(yaw), one(4.5), one(1.8), one(1.5), one(speed), one(0.0),
+                          np.array([lane], dtype=object))
+
+
 def test_a_standoff_with_a_vehicle_in_the_sweep_ends_with_it_taken_out_of_sumo(helsinki):
     """The car stands for its sweep's sake before a vehicle that stands too (Monaco, seed 17:
     inside a junction each waited for the other until SUMO teleported the vehicle 120 s
@@ -1557,8 +1574,7 @@ def test_a_standoff_with_a_vehicle_in_the_sweep_ends_with_it_taken_out_of_sumo(h
     try:
         ap, tr = sim.driver, sim.traffic
         s = tr.sumo
-        lane = max((ln for ln in s.lane.getIDList() if not ln.startswith(":")
-                    and "passenger" in (s.lane.getAllowed(ln) or ("passenger",))), key=s.lane.getLength)
+        lane = _longest_car_lane(s)
         edge = lane.rsplit("_", 1)[0]
         s.route.add("r_stand", [edge])
         for vid, pos in (("stander2", "60"), ("stander", "20")):
@@ -1625,21 +1641,13 @@ def test_a_standoff_goes_on_when_a_network_swap_renames_the_vehicle(helsinki):
     has stood all the while since it came in: here it comes in 10 s into the standoff and is
     taken out at STANDOFF_S, not 10 s later."""
     from cosim.autopilot import STANDOFF_S
-    from cosim.traffic import ActorsSnapshot
 
     sim = start_sim(helsinki, start=HEL_MID)
     try:
         ap, tr = sim.driver, sim.traffic
         s = tr.sumo
-        lane = max((ln for ln in s.lane.getIDList() if not ln.startswith(":")
-                    and "passenger" in (s.lane.getAllowed(ln) or ("passenger",))), key=s.lane.getLength)
+        lane = _longest_car_lane(s)
         s.route.add("r_carried", [lane.rsplit("_", 1)[0]])
-        one = lambda v: np.array([v])                    # noqa: E731
-
-        def snap(vid):
-            return ActorsSnapshot(0.0, np.array([vid], dtype=object), np.array(["passenger"], dtype=object),
-                                  one(0.0), one(0.0), one(0.0), one(4.5), one(1.8), one(1.5), one(0.0), one(0.0),
-                                  np.array([lane], dtype=object))
 
         t, taken = 0.0, None
         while t < STANDOFF_S + 12.0 and taken is None:
@@ -1650,7 +1658,7 @@ def test_a_standoff_goes_on_when_a_network_swap_renames_the_vehicle(helsinki):
             if t > 10.0:
                 s.vehicle.setSpeed(vid, 0.0)
             ap.sweep, ap.reason = (0.0, vid, "vehicle"), "clearance vehicle"
-            ap._standoff(0.0, t, snap(vid))
+            ap._standoff(0.0, t, _one_actor(vid, lane=lane))
             if ap.stats.standoffs:
                 taken = t
             tr.step()
@@ -1671,7 +1679,7 @@ def test_a_circle_of_waits_through_a_queue_behind_the_car_ends_with_the_lead_tak
     STANDOFF_S the lead is taken out, once SUMO's chain of leaders from it reaches the car;
     not while the queue stands too far behind the car (the circle is not closed), then it is."""
     from cosim.autopilot import STANDOFF_S, Lead
-    from cosim.traffic import ActorsSnapshot, EGO_ID
+    from cosim.traffic import EGO_ID
 
     sim = start_sim(helsinki, start=HEL_MID, speed_mps=10.0)
     try:
@@ -1688,12 +1696,6 @@ def test_a_circle_of_waits_through_a_queue_behind_the_car_ends_with_the_lead_tak
                           departSpeed="0", departLane=lane.rsplit("_", 1)[1])
         tr.step()                                        # (in)
         assert {"queued", "circler"} <= set(s.vehicle.getIDList())
-        one = lambda v: np.array([v])                    # noqa: E731
-
-        def snap(speed=0.0):
-            return ActorsSnapshot(0.0, np.array(["circler"], dtype=object), np.array(["passenger"], dtype=object),
-                                  one(0.0), one(0.0), one(0.0), one(4.5), one(1.8), one(1.5), one(speed), one(0.0),
-                                  np.array([lane], dtype=object))
 
         ap.sweep, ap.reason = None, "lead vehicle"
         ap.lead = Lead(4.0, 0.0, "vehicle", "lidar", "circler")
@@ -1706,7 +1708,7 @@ def test_a_circle_of_waits_through_a_queue_behind_the_car_ends_with_the_lead_tak
                 for vid in (EGO_ID, "queued") + (("circler",) if ap.stats.standoffs == 0 else ()):
                     s.vehicle.setSpeed(vid, 0.0)
                 tr.step()
-                ap._standoff(0.0, t, snap())
+                ap._standoff(0.0, t, _one_actor("circler", lane=lane))
                 t += 0.1
 
         # the queue 17.5 m behind the car: SUMO's chain of leaders (10 m) does not reach it
@@ -2426,7 +2428,6 @@ def test_the_car_steers_closely_while_it_stops_for_its_sweep(helsinki):
     import types
 
     from cosim.autopilot import CLOSE_TRACK_MPS
-    from cosim.traffic import ActorsSnapshot
 
     sim = start_sim(helsinki, start=HEL_MID, goal=(60.170763, 24.948623))     # a right turn 420 m on
     try:
@@ -2438,15 +2439,12 @@ def test_the_car_steers_closely_while_it_stops_for_its_sweep(helsinki):
         he = path.heading_at(s_e)
         ex, ey = px + side * 0.5 * math.sin(he), py - side * 0.5 * math.cos(he)
         car = types.SimpleNamespace(x=float(ex), y=float(ey), yaw=he, speed=3.0, steer=0.0)
-        one = lambda v: np.array([v])                    # noqa: E731
 
         def standing(offset: float):
             h = path.heading_at(s_apex)
             px, py = path.point_at(s_apex)
             x, y = px - side * offset * math.sin(h), py + side * offset * math.cos(h)
-            return ActorsSnapshot(0.0, np.array(["q1"], dtype=object), np.array(["passenger"], dtype=object),
-                                  one(x), one(y), one(h + math.pi / 2), one(4.5), one(1.8), one(1.5), one(0.0),
-                                  one(0.0), np.array(["x_0"], dtype=object))
+            return _one_actor("q1", x, y, h + math.pi / 2)
 
         ap._k, _, ap._lat = path.project(car.x, car.y, path.index_at(s_e))
         assert abs(abs(ap._lat) - 0.5) < 0.05
