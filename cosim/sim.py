@@ -354,15 +354,15 @@ class Simulation:
         try:
             if self.cfg.goal:
                 plan = self.traffic.plan_route(lane, pos, **self._plan_kw())
-                if not turns_round(plan["route"]):
+                if not turns_round(plan["route"]) and not plan.get("undrivable"):
                     return start[:5] + (plan,)
                 other = self.traffic.opposite_lane_at(lane, x, y)
                 if other is None:
                     return start
-                plan = self.traffic.plan_route(other[0], other[1], **self._plan_kw())
+                first, plan = plan, self.traffic.plan_route(other[0], other[1], **self._plan_kw())
                 if not plan["route"] or turns_round(plan["route"]):
                     return start
-                why = "the route takes a U-turn"
+                why = "the route takes a U-turn" if first["route"] else "no route the car can drive leads on from it"
             else:
                 if not self.traffic.runs_into_dead_end(lane):
                     return start
@@ -417,6 +417,10 @@ class Simulation:
                 raise InputError(self._far_goal(g))
             if not plan["route"]:
                 on = f"{g['street']} (lane {g['lane']})" if g.get("street") else f"lane {g['lane']}"
+                if plan.get("undrivable"):
+                    raise InputError(f"goal unreachable: every route from the car's position to its nearest road "
+                                     f"for cars, {on}, {g['dist']:.0f} m from it, goes through a tunnel (the world "
+                                     f"has none) or takes a turn the car cannot make")
                 raise InputError(f"goal unreachable: its nearest road for cars, {on}, {g['dist']:.0f} m from it, "
                                  f"cannot be reached by road from the car's position")
             self.summary.arrived = False

@@ -40,6 +40,7 @@ import glob
 import itertools
 import logging
 import math
+import json
 import os
 import random
 import re
@@ -1560,6 +1561,24 @@ class SumoTraffic(Component):
                 best, key = r, k
         return best
 
+    def _drivable_route(self, firsts, head, lanes):
+        """The car's own route (:func:`cosim.driving.route_without_turnarounds`: no turn it
+        cannot make, no tunnel) from one of the edges ``firsts`` (after ``head``) to the road of
+        the first of ``lanes`` it reaches: (route, that lane), or None."""
+        from .driving import route_without_turnarounds
+
+        seen = set()
+        for ln in lanes:
+            dst = ln.rsplit("_", 1)[0]
+            if dst in seen:
+                continue
+            seen.add(dst)
+            for first in firsts:
+                r = route_without_turnarounds(self._sim, first, dst) if first != dst else [dst]
+                if r:
+                    return list(head) + r, ln
+        return None
+
     def _lanes_near(self, x: float, y: float, radius: float, vclass: str = "passenger", most: int = 12) -> list:
         """(distance, lane) of the lanes on the surface a ``vclass`` may use within ``radius``
         of (x, y), nearest first, one lane an edge, at most ``most``."""
@@ -1580,6 +1599,19 @@ class SumoTraffic(Component):
                     and not is_tunnel(s, edge):
                 found[edge] = (d, ln)
         return sorted(found.values())[:most]
+
+    def _in_window(self, x: float, y: float) -> bool:
+        """Whether (x, y) lies in the square of chunks this network's world was built for
+        (``extent_m`` of the world.json beside its ``net`` folder); True where there is none."""
+        key = str(self.net_file)
+        cache = self.__dict__.setdefault("_extents", {})
+        if key not in cache:
+            try:
+                cache[key] = json.loads((self.net_file.parent.parent / "world.json").read_text())["extent_m"]
+            except (OSError, ValueError, KeyError, TypeError):
+                cache[key] = None
+        e = cache[key]
+        return e is None or (e[0] <= x <= e[2] and e[1] <= y <= e[3])
 
     def lane_pos(self, lane: str, x: float, y: float) -> float:
         """Position along ``lane`` of the point of it nearest to (x, y)."""
@@ -1896,6 +1928,12 @@ class SumoTraffic(Component):
 
             best = route_to(gedge)
             beyond = bool(out["goal"].get("beyond"))
+            if best is None and beyond_ok and not beyond and not self._in_window(gx, gy):
+                # a goal outside the chunks this network was built for (a streamed window), near
+                # a road of the window's that its cut left without a way in: as for a goal beyond
+                # it (a Monaco goal 100 m past a window's edge snapped to Avenue de la Costa, 19 m
+                # off, whose way in was cut: "goal unreachable" at the swap)
+                beyond = True
             if best is None and (gdist <= max_goal_snap_m or beyond):
                 # the nearest road does not lead there (cut off where the OSM extract ends, say:
                 # "goal unreachable" though a road the car reaches lay 50 m off): the nearest
@@ -1916,6 +1954,27 @@ class SumoTraffic(Component):
             if best is None:
                 return dict(out, route=[], path=None)
             route = head + list(best.edges)
+            path = self.lane_path(route, start_lane=lane, start_pos=pos)
+            if not loop and undrivable_steps(s, path.edges):
+                # SUMO's fastest route takes a turn the car cannot make (a U-turn at a junction)
+                # or a tunnel (the world has none), with no way round near it: the car's own
+                # router, to the goal's road or another near it. (A Monaco start heading west
+                # towards the city's end, its goal to the east: the route turned at a junction,
+                # and the car ran 6 m wide into a building; no road the car can drive leads
+                # back from there.)
+                radius = max_goal_snap_m if not beyond else gdist + BEYOND_SEARCH_M
+                alt = self._drivable_route(firsts, head, [out["goal"]["lane"]] + [
+                    ln for _, ln in self._lanes_near(gx, gy, radius)])
+                if alt is not None:
+                    route, ln = alt
+                    if ln != out["goal"]["lane"]:
+                        out["goal"] = self._goal_at(self._lane_point(ln, self.lane_pos(ln, gx, gy), gx, gy))
+                        if beyond and out["goal"]["dist"] > max_goal_snap_m:
+                            out["goal"]["beyond"] = True
+                    path = self.lane_path(route, start_lane=lane, start_pos=pos)
+                elif not beyond_ok:
+                    return dict(out, route=[], path=None, undrivable=True)
+            return dict(out, route=route, path=path)
         else:
             first = firsts[0]
             if len(firsts) > 1:

@@ -29,8 +29,7 @@ has finished, and what is left runs on both cores. Stages (timed; the report and
    then writes the buildings (lifted onto the levelled terrain: positions and bases into
    the prepared files); a second forked process, started once the roads are meshed, writes road
    tiles, piece by piece with this process, by whichever is free.
-   The junction planes of the nodes 300 m or more inside the extent are written to
-   ``road_planes.npz``; a build given a register (``heights``: a streamed window gets its
+   The junction planes of all the network's nodes are written to ``road_planes.npz``; a build given a register (``heights``: a streamed window gets its
    world's) keeps the planes it holds and adds its own to it once the build is in place;
 5. ``world.json`` last: the world is built in a temporary folder and renamed into place, so
    a killed build never leaves a folder that looks complete (forked processes die with
@@ -51,6 +50,7 @@ from __future__ import annotations
 import datetime as _dt
 import gc
 import json
+import math
 import os
 import shutil
 import time
@@ -282,9 +282,6 @@ def build_world(cfg: WorldConfig, progress=_noop, force: bool = False, heights=N
 
 NET_FILE = "net/world.net.xml"
 PLANES_FILE = "road_planes.npz"
-#: a build registers the junction planes of the nodes at least this far inside its extent
-#: (nearer its edge the network is cut, and the planes less like a wider build's)
-PLANES_MARGIN_M = 300.0
 
 
 def read_planes(path) -> dict | None:
@@ -343,6 +340,45 @@ def _swap_into_place(tmp: Path, out: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
+#: the natural ground under the roads reaches this far beyond the world's extent (m)
+ROAD_GROUND_MARGIN_M = 400.0
+#: the elevation source covers this much beyond the extent (the bbox: 50 m, checked at the start)
+COVERED_MARGIN_M = 45.0
+
+
+def road_ground(natural, elevation, frame, extent, margin: float = ROAD_GROUND_MARGIN_M):
+    """The natural ground under the roads: the terrain grid ``natural`` (over ``extent``)
+    grown by ``margin`` on its own lattice, the nodes beyond the extent sampled from the
+    elevation source where it covers them, else the grid's border (clamped). A lane whose
+    middle is in the world reaches out of it (30 m in Monaco, 300 m in Lauf); a window built
+    beyond the edge later samples the same nodes, so both builds give such a lane the same
+    heights. (Clamped at the border, a Monaco lane 28 m past the world's west edge followed
+    the border column's heights down a slope and ended 5 m under its junction; the window
+    built there kept that chunk's lane, and the car ran into the step at 10 m/s.)"""
+    from .terrain import TerrainGrid
+
+    sp = natural.spacing
+    k = int(math.ceil(margin / sp))
+    ny, nx = natural.z.shape
+    x0, y0 = natural.xmin - k * sp, natural.ymin - k * sp
+    xs, ys = x0 + np.arange(nx + 2 * k) * sp, y0 + np.arange(ny + 2 * k) * sp
+    X, Y = np.meshgrid(xs, ys)
+    z = np.asarray(natural.sample(X, Y), dtype=float)          # (beyond the extent: clamped)
+    z[k:k + ny, k:k + nx] = natural.z
+    ex0, ey0, ex1, ey1 = extent
+    for pad in (margin, COVERED_MARGIN_M):
+        out = (X < ex0) | (X > ex1) | (Y < ey0) | (Y > ey1)
+        out &= (X >= ex0 - pad) & (X <= ex1 + pad) & (Y >= ey0 - pad) & (Y <= ey1 + pad)
+        lon, lat = frame.to_lonlat(X[out], Y[out])
+        try:
+            zo = np.asarray(elevation.sample(lon, lat), dtype=float)
+        except (DataError, InputError):
+            continue            # (not all covered: the nodes of the bbox alone)
+        z[out] = np.where(np.isfinite(zo), zo, z[out])
+        break
+    return TerrainGrid(x0, y0, sp, z)
+
+
 # ---------------------------------------------------------------------------------------
 def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, source,
                 elevation, elev_info, key, name, nc, T: Timer, progress, pinned=None) -> dict:
@@ -363,6 +399,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         with T.stage("terrain_sample"):
             grid = sample_grid(frame, elevation, extent, spacing)
             natural = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, grid.z.copy())
+            roads_ground = road_ground(natural, elevation, frame, extent)
         progress("features", 0.0, "reading buildings and scenery")
         with T.stage("features"):
             feats = _read_features(source, osm_xml, frame, bbox, cfg.cache_path)
@@ -418,14 +455,16 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
             streams.fork("cosim-layers", lambda: _layers(tmp, chunks, net, splan or scenery_plan, grid,
                                                          buildings, streams, natural.sample))
             with T.stage("roads"):  # the levelling support: levelled here or in cosim-layers
-                roads = build_roads(net, natural.sample, q["road_step_m"],
+                roads = build_roads(net, roads_ground.sample, q["road_step_m"],
                                     on_support=lambda pts, hw, car, tris, hold: streams.level(
                                         pts, hw, car, tris, hold, T),
                                     pinned=pinned, surfaces=streams.surfaces)
-            m_ = PLANES_MARGIN_M
-            write_planes(tmp / PLANES_FILE, {j: p for j, p in roads.planes.items()
-                                             if extent[0] + m_ <= p[0] <= extent[2] - m_
-                                             and extent[1] + m_ <= p[1] <= extent[3] - m_})
+            # all the nodes' planes, those near and beyond the extent's edge too: a window
+            # built beyond the edge keeps them, so a lane of an edge chunk that reaches into a
+            # window's chunk meets the window's roads there (registered only 300 m or more
+            # inside the extent, Monaco's window (-2, -1) gave 13 % of the lane points it
+            # shares with the world other heights, up to 2.2 m, and such lanes up to 0.6 m)
+            write_planes(tmp / PLANES_FILE, roads.planes)
             T.t["roads"] = round(T.t["roads"] - T.t.get("terrain_level", 0.0), 3)
             with T.stage("road_tiles_plan"):
                 road_tiles = _RoadTiles(chunks, bounds, roads, TILE_M)
@@ -484,9 +523,9 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
                        "note": "x, y = proj(lon, lat) + net_offset; SUMO's network uses the same (see net_file <location>)"},
         "net_file": net_rel,
         "road_planes": {"file": PLANES_FILE, "pinned": roads.stats.get("planes_pinned", 0),
-                        "note": "junction planes (ids; planes: x0, y0, z0, gx, gy) of the nodes "
-                                f"{PLANES_MARGIN_M:.0f} m or more inside the extent; in the world a "
-                                "streamed window starts from, also those its windows added"},
+                        "note": "junction planes (ids; planes: x0, y0, z0, gx, gy) of the network's "
+                                "nodes; in the world a streamed window starts from, also those its "
+                                "windows added"},
         "tunnels": sorted(e.id for e in net.edges.values() if e.function == "normal" and e.tunnel),
         "stacked_over_lanes": sorted(ln.id for e in roads.stacked_over for ln in net.edges[e].lanes),
         "terrain": {"format": "npy-float32-grid", "spacing_m": spacing,
