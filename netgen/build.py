@@ -29,7 +29,8 @@ has finished, and what is left runs on both cores. Stages (timed; the report and
    then writes the buildings (lifted onto the levelled terrain: positions and bases into
    the prepared files); a second forked process, started once the roads are meshed, writes road
    tiles, piece by piece with this process, by whichever is free.
-   The junction planes of all the network's nodes are written to ``road_planes.npz``; a build given a register (``heights``: a streamed window gets its
+   The junction planes of the network's nodes (:func:`planes_to_register`) are written to
+   ``road_planes.npz``; a build given a register (``heights``: a streamed window gets its
    world's) keeps the planes it holds and adds its own to it once the build is in place;
 5. ``world.json`` last: the world is built in a temporary folder and renamed into place, so
    a killed build never leaves a folder that looks complete (forked processes die with
@@ -284,6 +285,27 @@ NET_FILE = "net/world.net.xml"
 PLANES_FILE = "road_planes.npz"
 
 
+def planes_to_register(planes: dict, net, extent) -> dict:
+    """The junction planes a build registers: all its nodes', those near and beyond the
+    extent's edge too, so that a lane of an edge chunk reaching into a window's chunk meets the
+    window's roads there (registered only 300 m or more inside the extent, Monaco's window
+    (-2, -1) gave 13 % of the lane points it shares with the world other heights, up to 2.2 m,
+    and such lanes up to 0.6 m). But not the ends of a bridge's deck that reaches out of the
+    extent: a deck's height is set along its whole length (straight between where it meets the
+    ground, clear of the roads under it), and beyond the extent the network is cut, so it
+    does not have all the roads the deck must clear there (Portland's ramp 48785401, its deck
+    350 m on past the world's edge, put its start 2.9 m lower than a build around it; the
+    windows kept that, and the deck crossed NW Northrup Street 0.3 m over its lanes)."""
+    x0, y0, x1, y1 = extent
+    skip = set()
+    for e in net.edges.values():
+        if e.bridge and e.function == "normal" and e.lanes:
+            P = np.vstack([ln.shape[:, :2] for ln in e.lanes])
+            if ((P[:, 0] < x0) | (P[:, 0] > x1) | (P[:, 1] < y0) | (P[:, 1] > y1)).any():
+                skip.update((e.from_node, e.to_node))
+    return {j: p for j, p in planes.items() if j not in skip}
+
+
 def read_planes(path) -> dict | None:
     """A road heights register: node id -> junction plane (x0, y0, z0, gx, gy), the plane
     z0 + gx (x - x0) + gy (y - y0) that the ends of the node's roads lie on. ``road_planes.npz``
@@ -459,12 +481,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
                                     on_support=lambda pts, hw, car, tris, hold: streams.level(
                                         pts, hw, car, tris, hold, T),
                                     pinned=pinned, surfaces=streams.surfaces)
-            # all the nodes' planes, those near and beyond the extent's edge too: a window
-            # built beyond the edge keeps them, so a lane of an edge chunk that reaches into a
-            # window's chunk meets the window's roads there (registered only 300 m or more
-            # inside the extent, Monaco's window (-2, -1) gave 13 % of the lane points it
-            # shares with the world other heights, up to 2.2 m, and such lanes up to 0.6 m)
-            write_planes(tmp / PLANES_FILE, roads.planes)
+            write_planes(tmp / PLANES_FILE, planes_to_register(roads.planes, net, extent))
             T.t["roads"] = round(T.t["roads"] - T.t.get("terrain_level", 0.0), 3)
             with T.stage("road_tiles_plan"):
                 road_tiles = _RoadTiles(chunks, bounds, roads, TILE_M)
@@ -524,8 +541,9 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         "net_file": net_rel,
         "road_planes": {"file": PLANES_FILE, "pinned": roads.stats.get("planes_pinned", 0),
                         "note": "junction planes (ids; planes: x0, y0, z0, gx, gy) of the network's "
-                                "nodes; in the world a streamed window starts from, also those its "
-                                "windows added"},
+                                "nodes but the ends of a bridge's deck that reaches out of the extent; "
+                                "in the world a streamed window starts from, also those its windows "
+                                "added"},
         "tunnels": sorted(e.id for e in net.edges.values() if e.function == "normal" and e.tunnel),
         "stacked_over_lanes": sorted(ln.id for e in roads.stacked_over for ln in net.edges[e].lanes),
         "terrain": {"format": "npy-float32-grid", "spacing_m": spacing,

@@ -1482,6 +1482,24 @@ def test_portland_with_geotiff_and_voids(tmp_path):
     # (the grid's border before), puts it 0.18 m under the lane where it stood 0.09 m over it
     over = _lane_points_under_another_road(tmp_path / "a" / "w", w)
     assert len(over) > 20000 and (over > 0.1).sum() < 75, (len(over), (over > 0.1).sum())
+    # the road heights register: every node's plane, beyond the extent's edge too, but not the
+    # ends of a bridge's deck that reaches out of the extent (its height depends on roads
+    # under it that the cut network does not have: a ramp's deck registered so crossed NW
+    # Northrup Street 0.3 m over its lanes in the windows built beyond, and a car ran into it)
+    from netgen.build import PLANES_FILE, read_planes
+
+    reg = read_planes(tmp_path / "a" / "w" / PLANES_FILE)
+    net = read_net(tmp_path / "a" / "w" / w["net_file"])
+    x0, y0, x1, y1 = w["extent_m"]
+
+    def out_of(P):
+        return bool(((P[:, 0] < x0) | (P[:, 0] > x1) | (P[:, 1] < y0) | (P[:, 1] > y1)).any())
+
+    decks_out = [e for e in net.edges.values() if e.function == "normal" and e.bridge and e.lanes
+                 and out_of(np.vstack([ln.shape[:, :2] for ln in e.lanes]))]
+    assert len(decks_out) >= 3
+    assert not {n for e in decks_out for n in (e.from_node, e.to_node)} & set(reg)
+    assert sum(1 for p in reg.values() if out_of(np.array([p[:2]]))) > 20
     nodata = shared_file("dem/portland-ned-nodata.tif")
     w2 = build_world(WorldConfig(osm=str(osm), dem=[str(nodata)], center=(45.5152, -122.6784), chunks=0,
                                  terrain_spacing_m=10.0, out=str(tmp_path / "b"), cache_dir=str(tmp_path / "cache")))
