@@ -38,9 +38,9 @@ import contextlib
 import dataclasses
 import glob
 import itertools
+import json
 import logging
 import math
-import json
 import os
 import random
 import re
@@ -416,6 +416,7 @@ class SumoTraffic(Component):
         if not (0.0 <= float(lane_change_s) <= 20.0):
             raise SimulationError(f"lane change duration {lane_change_s} s is out of range (0..20)")
         self.net_file = Path(net_file)
+        self._extents: dict = {}            # net file -> its world's extent_m (_in_window)
         if isinstance(route_files, (str, os.PathLike)):
             route_files = [route_files]
         self.route_files = [Path(p) for p in route_files]
@@ -1604,7 +1605,7 @@ class SumoTraffic(Component):
         """Whether (x, y) lies in the square of chunks this network's world was built for
         (``extent_m`` of the world.json beside its ``net`` folder); True where there is none."""
         key = str(self.net_file)
-        cache = self.__dict__.setdefault("_extents", {})
+        cache = self._extents
         if key not in cache:
             try:
                 cache[key] = json.loads((self.net_file.parent.parent / "world.json").read_text())["extent_m"]
