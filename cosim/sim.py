@@ -342,8 +342,10 @@ class Simulation:
         Lauf the car drove into the building at its end) and the other direction's does not:
         with a goal, the route to it; with none, the road ahead, which runs into a dead end
         (read from the lanes' links: a route search here changed what SUMO did next, and the
-        default run drove 359 m, not 360). (x, y, yaw, lane, pos, the goal's plan from the
-        lane taken, if made)"""
+        default run drove 359 m, not 360), or from which no road the car can drive leads on
+        (``SumoTraffic.leads_on``: Monaco's Avenue de Grande-Bretagne, every way on through a
+        tunnel or a turn the car cannot make; it drove into one). (x, y, yaw, lane, pos, the
+        goal's plan from the lane taken, if made)"""
 
         from .traffic import opposite_edge
 
@@ -364,12 +366,13 @@ class Simulation:
                     return start
                 why = "the route takes a U-turn" if first["route"] else "no route the car can drive leads on from it"
             else:
-                if not self.traffic.runs_into_dead_end(lane):
+                dead = self.traffic.runs_into_dead_end(lane)
+                if not dead and self.traffic.leads_on(lane):
                     return start
                 other = self.traffic.opposite_lane_at(lane, x, y)
-                if other is None or self.traffic.runs_into_dead_end(other[0]):
+                if other is None or self.traffic.runs_into_dead_end(other[0]) or not self.traffic.leads_on(other[0]):
                     return start
-                plan, why = None, "it runs into a dead end"
+                plan, why = None, "it runs into a dead end" if dead else "no road the car can drive leads on from it"
         except SimulationError:
             return start                        # (_plan_route says what is wrong)
         if not np.isfinite(self.world.ground_z(other[2], other[3])[0]):

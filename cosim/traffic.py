@@ -1490,6 +1490,17 @@ class SumoTraffic(Component):
             edge = on.pop()
         return False
 
+    def leads_on(self, lane: str) -> bool:
+        """Whether the car can drive on a kilometre from the end of ``lane``'s road without a
+        step it cannot drive (a tunnel, a turn far tighter than its full lock:
+        :func:`cosim.driving.escapes`, over the lanes' links, no route search)."""
+        from .driving import escapes
+
+        try:
+            return escapes(self._require(), lane.rsplit("_", 1)[0])
+        except self._exc:
+            return True
+
     def opposite_lane_at(self, lane: str, x: float, y: float):
         """The car lane of ``lane``'s road in the other direction (:func:`opposite_edge`)
         nearest to (x, y), as :meth:`snap_lane` answers; None on a one-way road."""
