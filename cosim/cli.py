@@ -349,9 +349,11 @@ def make_parser() -> argparse.ArgumentParser:
                         "after its build started (never waits for a build; the run is not repeatable)")
     g.add_argument("--start", metavar="LAT,LON",
                    help="start here (snapped to the nearest lane; on a two-way road, the direction that reaches --to "
-                        "without a U-turn, or with no --to the one that does not run into a dead end); "
-                        "default: the centre")
-    g.add_argument("--to", metavar="LAT,LON", help="drive to this GPS coordinate by road")
+                        "without a U-turn, or with no --to the one that does not run into a dead end or a turn the "
+                        "car cannot make); default: the centre")
+    g.add_argument("--to", metavar="LAT,LON",
+                   help="drive to this GPS coordinate by road (by a route with no tunnel and no turn the car "
+                        "cannot make: the world has no tunnels; where there is none, the run does not start)")
     g.add_argument("--respect-speed-limit", action="store_true", help="never exceed the lane's speed limit")
     g.add_argument("--sensor-range", type=float, metavar="M", help="lidar/camera range the world must cover (default 100)")
     g.add_argument("--telemetry", metavar="FILE.jsonl", help="write one JSON row per SUMO step")
