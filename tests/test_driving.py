@@ -351,9 +351,9 @@ def test_a_goal_route_has_no_turn_the_car_cannot_make_or_is_a_clear_error(monaco
 def test_a_start_with_no_drivable_way_on_turns_round(monaco):
     """Monaco: from Avenue de Grande-Bretagne (157719645#0), going north-east, every way on
     passes a tunnel or a turn the car cannot make, though its lanes have links to more than
-    one road (so it is no dead end by its links). With no goal the car drove into one: 147 m
-    in 60 s, and a collision. It now starts on the road's other direction, from which it
-    drives on (``SumoTraffic.leads_on``)."""
+    one road (so it is no dead end by its links). With no goal the car drove into one
+    (``cosim run``, default traffic: 147 m in 60 s, and a collision). It now starts on the
+    road's other direction, from which it drives on (``SumoTraffic.leads_on``)."""
     sim = start_sim(monaco, start=(43.741057, 7.427591), speed_mps=10.0, duration_s=60)
     try:
         assert not sim.traffic.runs_into_dead_end("157719645#0_1")
