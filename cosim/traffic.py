@@ -38,7 +38,6 @@ import contextlib
 import dataclasses
 import glob
 import itertools
-import json
 import logging
 import math
 import os
@@ -1614,15 +1613,13 @@ class SumoTraffic(Component):
 
     def _in_window(self, x: float, y: float) -> bool:
         """Whether (x, y) lies in the square of chunks this network's world was built for
-        (``extent_m`` of the world.json beside its ``net`` folder); True where there is none."""
+        (:func:`cosim.demand.world_extent`); True where there is none."""
+        from .demand import world_extent
+
         key = str(self.net_file)
-        cache = self._extents
-        if key not in cache:
-            try:
-                cache[key] = json.loads((self.net_file.parent.parent / "world.json").read_text())["extent_m"]
-            except (OSError, ValueError, KeyError, TypeError):
-                cache[key] = None
-        e = cache[key]
+        if key not in self._extents:
+            self._extents[key] = world_extent(self.net_file)
+        e = self._extents[key]
         return e is None or (e[0] <= x <= e[2] and e[1] <= y <= e[3])
 
     def lane_pos(self, lane: str, x: float, y: float) -> float:
@@ -1946,6 +1943,13 @@ class SumoTraffic(Component):
                 # it (a Monaco goal 100 m past a window's edge snapped to Avenue de la Costa, 19 m
                 # off, whose way in was cut: "goal unreachable" at the swap)
                 beyond = True
+            radius = max_goal_snap_m if not beyond else gdist + BEYOND_SEARCH_M
+
+            def goal_on(ln):                # (another road near the goal, the one taken)
+                out["goal"] = self._goal_at(self._lane_point(ln, self.lane_pos(ln, gx, gy), gx, gy))
+                if beyond and out["goal"]["dist"] > max_goal_snap_m:
+                    out["goal"]["beyond"] = True
+
             if best is None and (gdist <= max_goal_snap_m or beyond):
                 # the nearest road does not lead there (cut off where the OSM extract ends, say:
                 # "goal unreachable" though a road the car reaches lay 50 m off): the nearest
@@ -1953,15 +1957,12 @@ class SumoTraffic(Component):
                 # network (a streamed window), the nearest one it reaches within BEYOND_SEARCH_M
                 # more (the nearest road of a Portland window was the Marquam Bridge's deck,
                 # 161 m from the goal and not reachable: the run ended at the swap)
-                radius = max_goal_snap_m if not beyond else gdist + BEYOND_SEARCH_M
                 for d, ln in self._lanes_near(gx, gy, radius):
                     if ln.rsplit("_", 1)[0] == glane.rsplit("_", 1)[0]:
                         continue
                     best = route_to(ln.rsplit("_", 1)[0])
                     if best is not None:
-                        out["goal"] = self._goal_at(self._lane_point(ln, self.lane_pos(ln, gx, gy), gx, gy))
-                        if beyond and out["goal"]["dist"] > max_goal_snap_m:
-                            out["goal"]["beyond"] = True
+                        goal_on(ln)
                         break
             if best is None:
                 return dict(out, route=[], path=None)
@@ -1974,15 +1975,12 @@ class SumoTraffic(Component):
                 # towards the city's end, its goal to the east: the route turned at a junction,
                 # and the car ran 6 m wide into a building; no road the car can drive leads
                 # back from there.)
-                radius = max_goal_snap_m if not beyond else gdist + BEYOND_SEARCH_M
                 alt = self._drivable_route(firsts, head, [out["goal"]["lane"]] + [
                     ln for _, ln in self._lanes_near(gx, gy, radius)])
                 if alt is not None:
                     route, ln = alt
                     if ln != out["goal"]["lane"]:
-                        out["goal"] = self._goal_at(self._lane_point(ln, self.lane_pos(ln, gx, gy), gx, gy))
-                        if beyond and out["goal"]["dist"] > max_goal_snap_m:
-                            out["goal"]["beyond"] = True
+                        goal_on(ln)
                     path = self.lane_path(route, start_lane=lane, start_pos=pos)
                 elif not beyond_ok:
                     return dict(out, route=[], path=None, undrivable=True)

@@ -368,8 +368,8 @@ ROAD_GROUND_MARGIN_M = 400.0
 COVERED_MARGIN_M = 45.0
 
 
-def road_ground(natural, elevation, frame, extent, margin: float = ROAD_GROUND_MARGIN_M):
-    """The natural ground under the roads: the terrain grid ``natural`` (over ``extent``)
+def road_ground(natural, elevation, frame, margin: float = ROAD_GROUND_MARGIN_M):
+    """The natural ground under the roads: the terrain grid ``natural`` (over the extent)
     grown by ``margin`` on its own lattice, the nodes beyond the extent sampled from the
     elevation source where it covers them, else the grid's border (clamped). A lane whose
     middle is in the world reaches out of it (30 m in Monaco, 300 m in Lauf); a window built
@@ -387,7 +387,8 @@ def road_ground(natural, elevation, frame, extent, margin: float = ROAD_GROUND_M
     X, Y = np.meshgrid(xs, ys)
     z = np.asarray(natural.sample(X, Y), dtype=float)          # (beyond the extent: clamped)
     z[k:k + ny, k:k + nx] = natural.z
-    ex0, ey0, ex1, ey1 = extent
+    ex0, ey0 = natural.xmin, natural.ymin
+    ex1, ey1 = ex0 + (nx - 1) * sp, ey0 + (ny - 1) * sp
     for pad in (margin, COVERED_MARGIN_M):
         out = (X < ex0) | (X > ex1) | (Y < ey0) | (Y > ey1)
         out &= (X >= ex0 - pad) & (X <= ex1 + pad) & (Y >= ey0 - pad) & (Y <= ey1 + pad)
@@ -421,7 +422,7 @@ def _build_into(tmp: Path, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, 
         with T.stage("terrain_sample"):
             grid = sample_grid(frame, elevation, extent, spacing)
             natural = TerrainGrid(grid.xmin, grid.ymin, grid.spacing, grid.z.copy())
-            roads_ground = road_ground(natural, elevation, frame, extent)
+            roads_ground = road_ground(natural, elevation, frame)
         progress("features", 0.0, "reading buildings and scenery")
         with T.stage("features"):
             feats = _read_features(source, osm_xml, frame, bbox, cfg.cache_path)
