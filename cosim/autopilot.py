@@ -74,6 +74,7 @@ from .driving import (PurePursuit, SpeedController, _drivable_lanes, _resample, 
 from .mirror import LEVEL_M      # (levels more than this apart: a deck and the road under it)
 from .sumo_process import NOT_YET
 from .traffic import NETWORK_READS, STANDOFF_CREEP_MPS, _boxes_overlap, carried_id
+from .turnround import MOVE_SPEED as MOVE_SPEED_TURN
 from .vehicle import STEER_RATE, WHEELBASE
 
 log = logging.getLogger("cosim.autopilot")
@@ -179,6 +180,8 @@ class DrivingStats:
     rollbacks: int = 0       # times the car rolled back (ROLLBACK_MPS) against the throttle
     standoffs: int = 0       # vehicles taken out of SUMO after a standoff with the car (_standoff)
     lane_change_waits: int = 0   # lane changes held back for a vehicle in the lane changed into
+    turnarounds: int = 0     # turns made in moves forward and back where the route turns back (cosim.turnround)
+    no_room_to_turn: int = 0     # ... where the carriageway has no room for them: the car stops there
     time_gaps: list = field(default_factory=list, repr=False)   # steady following samples, s
     events: list = field(default_factory=list, repr=False)      # (t, kind, detail)
 
@@ -188,7 +191,8 @@ class DrivingStats:
                 "min_gap_moving_m": round(self.min_gap_moving_m, 2), "red_light_stops": self.red_light_stops,
                 "stop_sign_stops": self.stop_sign_stops, "pedestrian_yields": self.pedestrian_yields,
                 "sweeps": self.sweeps, "rollbacks": self.rollbacks, "standoffs": self.standoffs,
-                "lane_change_waits": self.lane_change_waits,
+                "lane_change_waits": self.lane_change_waits, "turnarounds": self.turnarounds,
+                "no_room_to_turn": self.no_room_to_turn,
                 "time_gap_p5_s": round(float(np.percentile(tg, 5)), 2) if len(tg) else None}
 
 
@@ -265,6 +269,11 @@ class Autopilot:
         self._s_here = 0.0
         self._k = 0
         self._lat = 0.0
+        self.reverse = False              # the gear the car's controls are for (a turn's moves back)
+        self._turn = None                 # the turn round under way (cosim.turnround.TurnRound)
+        self._uturns: list = []           # the path's stop lines where it turns back tighter than the car can
+        self._no_room: set = set()        # (lane, to_lane) where the carriageway has no room to turn round
+        self._lane_widths: dict = {}
 
     # --- the controller interface ------------------------------------------------------
     def control(self, st, s_here: float, actors, dt: float):
@@ -282,6 +291,9 @@ class Autopilot:
         if path is not self._path:
             self._new_path(path)
         self._st, self._s_here = st, s_here
+        if self._turn is not None:
+            return self._turning(st, actors, dt, getattr(sim, "t", 0.0))
+        self.reverse = False
         pr = getattr(sim, "ego_projection", None)
         if pr is not None and pr[0] is path and pr[1] == st.x and pr[2] == st.y and pr[3] == s_here:
             self._k, self._lat = pr[4], pr[5]       # the loop's own projection of this state
@@ -354,6 +366,11 @@ class Autopilot:
         self._rolling_back = rolling_back
         if rolling_back or self._too_steep:
             targets.append((0.0, "too steep" if self._too_steep else "rolling back"))
+        # where the path turns back tighter than the car can: stopped short of it, to turn round
+        # in moves forward and back (cosim.turnround)
+        turn = self._turn_ahead(path, st, s_here, v, targets, t)
+        if turn is not None:
+            return turn
         v_target, reason = min(targets, key=lambda x: x[0])
         v_target = max(0.0, v_target)
         a_ff = 0.0
@@ -583,6 +600,123 @@ class Autopilot:
         self._path_bridge = on if on is not None and on.any() else None
         self._path_rises = None
         self._path_edges = {e for _, e in path.lane_of}
+        self._uturns = self._turns_back(path)
+
+    # --- turning round (cosim.turnround) -----------------------------------------------------
+    def _turns_back(self, path) -> list:
+        """The path's stop lines where it turns back onto its road's other direction along a
+        line the car would run wide of by more than TURN_DEVIATION_MAX_M (a dead end's U-turn,
+        a U-turn inside a junction: SUMO draws them 3-4 m round)."""
+        from .driving import TURN_DEVIATION_MAX_M, car_turn_radius, turn_deviation
+        from .traffic import opposite_edge
+
+        out = []
+        for u in path.stops:
+            if not u.to_lane or u.to_lane.rsplit("_", 1)[0] != opposite_edge(u.lane.rsplit("_", 1)[0]):
+                continue
+            i0 = path.index_at(u.s - 10.0)
+            i1 = path.index_at(u.s + u.internal_length + 10.0)
+            if turn_deviation(path.xy[i0:i1 + 1], car_turn_radius()) > TURN_DEVIATION_MAX_M:
+                out.append(u)
+        return out
+
+    def _lane_width(self, lane: str):
+        """A lane's width (m; cached), None while SUMO's worker has not sent it yet."""
+        got = self._lane_widths.get(lane)
+        if got is None:
+            tr = self.sim.traffic
+            answered = getattr(tr, "answered", None)
+            try:
+                got = answered(("sumo", "lane", "getWidth"), (lane,)) if answered is not None \
+                    else tr.sumo.lane.getWidth(lane)
+            except Exception:
+                got = 3.2
+            if got is NOT_YET:
+                return None
+            got = self._lane_widths[lane] = float(got)
+        return got
+
+    def _turn_ahead(self, path, st, s_here: float, v: float, targets: list, t: float):
+        """Where the path turns back ahead (:meth:`_turns_back`): a stop short of it, and once
+        the car stands there the turn round begins (its first controls returned); None
+        otherwise."""
+        u = next((u for u in self._uturns if u.s > s_here - 2.0), None)
+        if u is None:
+            return None
+        from .turnround import ROOM_AHEAD_M
+
+        s_stop = u.s - self.front - ROOM_AHEAD_M
+        no_room = (u.lane, u.to_lane) in self._no_room
+        targets.append((stop_speed(s_stop - s_here, COMFORT_DECEL), "no room to turn round" if no_room else
+                        "turning round"))
+        if no_room or s_here < s_stop - 1.5 or abs(v) > 0.2 or min(targets, key=lambda x: x[0])[1] != "turning round":
+            return None
+        if not self._start_turn(path, u, st):
+            return None
+        return self._turning(st, None, 0.0, t)
+
+    def _start_turn(self, path, u, st) -> bool:
+        """A :class:`cosim.turnround.TurnRound` for the car standing before stop line ``u``, if
+        the carriageway has room for it (else the car stays stopped: ``no room to turn
+        round``). False while the lanes' shapes or widths are still on their way."""
+        from . import vehicle as V
+        from .driving import car_turn_radius
+        from .turnround import Carriageway, TurnRound, moves_needed
+
+        far = self._lane_shape(u.to_lane)
+        w_own, w_far = self._lane_width(u.lane), self._lane_width(u.to_lane)
+        if far is None or w_own is None or w_far is None:
+            return False
+        i0, i1 = path.index_at(u.s - 60.0), path.index_at(u.s)
+        C = path.xy[i0:i1 + 1]
+        t = getattr(self.sim, "t", 0.0)
+        try:
+            cw = Carriageway.between(C, w_own, far[0], w_far, near_s=float(path.s[self._k] - path.s[i0]))
+        except ValueError:
+            cw = None
+        half_l, half_w = self.length / 2.0, self.width / 2.0
+        rear = V.SPEC.rear_axle_x
+        n = moves_needed(cw, st.x, st.y, st.yaw, half_l, half_w, car_turn_radius(), rear) if cw else None
+        if n is None:
+            self._no_room.add((u.lane, u.to_lane))
+            self.stats.no_room_to_turn += 1
+            self.stats.events.append((round(t, 2), "no room to turn round", u.lane))
+            width = (cw.left - cw.right) if cw else 0.0
+            log.warning("t=%.1f s: the route turns back at the end of lane %s and its carriageway (%.1f m) has no "
+                        "room for the car to turn round: it stops there", t, u.lane, width)
+            return False
+        max_steer = math.atan(WHEELBASE / car_turn_radius())
+        self._turn = TurnRound(cw, half_l, half_w, car_turn_radius(), rear, max_steer, u.to_lane, u.lane)
+        log.info("t=%.1f s: turning round before the end of lane %s into %s (%d moves planned)", t, u.lane,
+                 u.to_lane, n)
+        return True
+
+    def _turning(self, st, actors, dt: float, t: float):
+        """The turn round's controls; once done, the route goes on from the lane turned into
+        (``sim.turned_round``); given up, the car stands (``no room to turn round``)."""
+        tr = self._turn
+        throttle, brake, steer, rev = tr.control(st, dt, actors)
+        self.reverse = rev
+        self.target_speed = 0.0 if (tr.waiting or tr.phase != "go") else MOVE_SPEED_TURN
+        self.reason = "turning round" + (": waiting" if tr.waiting else "")
+        if tr.done or tr.failed:
+            self._turn = None
+            self.reverse = False
+            if tr.done:
+                self.stats.turnarounds += 1
+                self.stats.events.append((round(t, 2), "turned round", f"{tr.move + 1} moves"))
+                log.info("t=%.1f s: turned round into %s in %d moves", t, tr.to_lane, tr.move + 1)
+                turned = getattr(self.sim, "turned_round", None)
+                if turned is not None:
+                    turned(tr.from_lane, tr.to_lane)
+            else:
+                self._no_room.add((tr.from_lane, tr.to_lane))
+                self.stats.no_room_to_turn += 1
+                log.warning("t=%.1f s: gave up turning round before the end of lane %s after %d moves", t,
+                            tr.from_lane, tr.move)
+            throttle, brake, steer = 0.0, 1.0, steer
+        self.last = (throttle, brake, steer)
+        return throttle, brake, steer
 
     def _same_level(self, actors, path, s_here: float):
         """`actors` without those on another level than the path: a car on a bridge's deck over

@@ -607,7 +607,8 @@ class Simulation:
                 throttle, brake, steer = self.driver.control(st, s_here, self.mirror.as_placed(snap),
                                                              cfg.step_length_s)
             self.last_control = (throttle, brake, steer)
-        self.vehicle.apply_control(throttle, brake, steer)
+        self.vehicle.apply_control(throttle, brake, steer,
+                                   reverse=self.manual is None and getattr(self.driver, "reverse", False))
         self.vehicle.step(self.substeps)
         self._check_collisions()
         self._check_held(st, throttle, brake)
@@ -701,6 +702,27 @@ class Simulation:
         lane = self.path.lane_of[k][0]
         cur_edge = lane.rsplit("_", 1)[0]
         return st, lane, cur_edge, self.route.index(cur_edge) if cur_edge in self.route else len(self.route) - 1
+
+    def turned_round(self, from_lane: str, to_lane: str) -> None:
+        """The driver has turned the car round where the route turns back from ``from_lane``
+        into ``to_lane`` (``cosim.turnround``): the route and the lane path go on from the car
+        on ``to_lane``."""
+        st = self.vehicle.state()
+        a, b = from_lane.rsplit("_", 1)[0], to_lane.rsplit("_", 1)[0]
+        first = self._car_on_route()[3]
+        steps = [j for j in range(len(self.route) - 1) if self.route[j] == a and self.route[j + 1] == b]
+        after = [j for j in steps if j >= first - 1]
+        j = (after or steps or [None])[0]
+        route = self.route[j + 1:] if j is not None else [b]
+        pos = self.traffic.lane_pos(to_lane, st.x, st.y)
+        try:
+            path = self.traffic.lane_path(route, start_lane=to_lane, start_pos=pos)
+        except (ValueError, CosimError) as e:
+            log.info("no lane path on from %s after turning round (%s): planning a new route", to_lane, e)
+            self.replan()
+            return
+        self.route, self.path = route, path
+        self._path_idx = self.path.project(st.x, st.y, 0)[0]
 
     def _extend_route(self):
         if self.t < self._extend_retry_t:

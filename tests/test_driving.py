@@ -198,6 +198,87 @@ def test_a_start_facing_a_dead_end_turns_round_to_the_goal(kouvola):
     assert summary.ego_collisions == 0 and summary.distance_m > 250, summary.line()
 
 
+@pytest.fixture(scope="module")
+def lauf_pocket(tmp_path_factory):
+    """Lauf, one chunk round Bitterbachstraße (way 24446380) and the streets off it: every way
+    out of them is closed to cars (tracks, service ways), so a route from there turns back."""
+    osm = shared_file("osm/lauf-2020.osm.pbf")
+    dem = shared_file("dem/N49E011.hgt.zip")
+    out = tmp_path_factory.mktemp("drv") / "lauf"
+    build_world(WorldConfig(osm=str(osm), dem=[str(dem)], center=(49.5003, 11.2640), chunks=0, out=str(out),
+                            cache_dir=str(out.parent / "cache")))
+    return str(out)
+
+
+def test_the_turn_round_moves_stay_in_the_carriageway():
+    """``cosim.turnround`` on a straight two-way road: the car's moves (its kinematics, as
+    planned before it starts) turn it round in a few moves on 6.4 m of carriageway (two lanes
+    of SUMO's default 3.2 m: nearly every dead end in the five test worlds), in fewer on a
+    wider road, and not at all in 5 m; no move takes the footprint over an edge."""
+    from cosim import turnround as T
+    from cosim.driving import car_turn_radius
+
+    R = car_turn_radius()
+    C = np.array([[x, 0.0] for x in range(-60, 1)], dtype=float)
+    need = {}
+    for width in (5.0, 6.4, 8.0):
+        far = np.array([[x, width / 2] for x in range(0, -61, -1)], dtype=float)
+        cw = T.Carriageway.between(C, width / 2, far, width / 2, near_s=50.0)
+        assert cw.side == 1 and cw.right == pytest.approx(-width / 4) and cw.left == pytest.approx(3 * width / 4)
+        x, y, yaw = -FRONT - T.ROOM_AHEAD_M, 0.0, 0.0
+        need[width] = T.moves_needed(cw, x, y, yaw, FRONT, 0.9, R, -1.35)
+        if need[width] is None:
+            continue
+        # the moves again, each as far as its room less the stop's, every pose's footprint
+        # checked, until the car heads the way back
+        done = False
+        for move in range(need[width]):
+            fwd = move % 2 == 0
+            curv = (1.0 if fwd else -1.0) / R
+            go = T.room_along(cw, x, y, yaw, fwd, curv, FRONT, 0.9, -1.35) - 2 * T.STOP_ROOM_M
+            assert go > 0.1, (width, move)
+            for d in np.arange(0.0, go, 0.05):
+                pose = T.arc_pose(x, y, yaw, d if fwd else -d, curv, -1.35)
+                assert cw.violation(T.footprint(*pose, FRONT, 0.9)) <= 1e-9, (width, move, d)
+                if abs(math.degrees(T._wrap(pose[2] - math.pi))) <= T.DONE_DEG:
+                    done = True
+                    break
+            if done:
+                break
+            x, y, yaw = T.arc_pose(x, y, yaw, go if fwd else -go, curv, -1.35)
+        assert done, (width, need[width], math.degrees(yaw))
+    assert need[5.0] is None
+    assert need[6.4] is not None and need[8.0] is not None and 3 <= need[8.0] < need[6.4] <= 11, need
+
+
+def test_a_route_that_turns_back_is_driven_as_a_turn_in_moves(lauf_pocket, tmp_path):
+    """Lauf: from Bitterbachstraße every way on ends in a dead end or at a way closed to cars,
+    and the random route turns back on itself where SUMO draws a U-turn 3-4 m round. The car
+    drove that loop at full lock 6 m wide of it: off the road for 78 s of 110, into a building
+    (at 1.3 m/s), where it stood 77 s. It now stops short of the turn and turns round in moves
+    forward and back inside the carriageway (``cosim.turnround``), then drives on."""
+    tel = tmp_path / "t.jsonl"
+    sim = start_sim(lauf_pocket, start=(49.500266, 11.262326), speed_mps=10.0, duration_s=110, telemetry=str(tel))
+    try:
+        summary = sim.run()
+        stats = sim.driver.stats
+    finally:
+        sim.teardown()
+    rows = [json.loads(line) for line in tel.read_text().splitlines()]
+    turning = [r for r in rows if r["reason"].startswith("turning round")]
+    assert stats.turnarounds >= 1 and stats.no_room_to_turn == 0, stats.as_dict()
+    assert summary.ego_collisions == 0 and summary.held_longest_s <= 0.5, summary.line()
+    assert all(r["on_road"] for r in rows), [r["t"] for r in rows if not r["on_road"]][:5]
+    assert min(r["speed_mps"] for r in turning) < -0.5          # moves back, in reverse
+    done = [e for e in stats.events if e[1] == "turned round"]
+    t_done = done[0][0]
+    before = [r for r in turning if r["t"] < t_done][0]
+    after = next(r for r in rows if r["t"] > t_done + 3.0)
+    assert abs((after["yaw_deg"] - before["yaw_deg"] + 180.0) % 360.0 - 180.0) > 150.0, (before, after)
+    moved_after = sum(math.hypot(b["x"] - a["x"], b["y"] - a["y"]) for a, b in zip(rows, rows[1:]) if a["t"] > t_done)
+    assert moved_after > 100.0, moved_after
+
+
 def test_a_goal_behind_the_car_on_its_own_road_is_reached_round_the_block(helsinki):
     """A goal 40 m behind the start, on the start's own lane: SUMO's route from a road to
     itself is that road alone, and the plan took it ("route 10 m" for a goal 70 m behind the

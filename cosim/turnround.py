@@ -1,0 +1,294 @@
+"""Turning round where the route turns back: a multi-point turn inside the carriageway.
+
+A route the car has no other way on for (a dead end, a pocket of streets whose every way out
+is closed to cars: Lauf's Bitterbachstraße and the streets off it) turns back on itself, with
+a U-turn link SUMO draws as a loop of 3-4 m radius. The car turns no tighter than 4.6 m (its
+rear axle at full lock) and ran 6 m wide of that loop, off the road and into what stood there.
+A driver turns round in a few moves instead: forward at full lock across the road, back at
+the other lock, forward again, until the car faces the other way. :class:`TurnRound` does
+that: each move goes until the car's footprint, a moment of braking ahead, would leave the
+carriageway (the approach lane and the lane it turns back into, as SUMO draws them), or the
+lane's end ahead; it waits while an actor stands in the way of the move; it is done when the
+car heads within :data:`DONE_DEG` of the way back. :func:`moves_needed`
+runs the same moves on the car's kinematics first, so that a road too narrow for them (in
+about 6 m of carriageway the car needs 11 moves, in 5 m none suffice) is known before the car
+starts.
+
+The frame: ``C``, the approach lane's centreline (the lane path up to the stop line), along
+which a point has its arc length ``s`` and its signed offset ``d`` (left positive). The
+carriageway lies between ``right`` and ``left`` in ``d``; the turn goes towards the far lane
+(``side``: +1 where it lies to the left, as in right-hand traffic).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: m/s of each move forward and back
+MOVE_SPEED = 1.2
+#: m the footprint keeps inside the carriageway's edges and the lane's end
+EDGE_MARGIN_M = 0.2
+#: the turn is done when the car heads within this of the way back (deg)
+DONE_DEG = 25.0
+#: give up after this many moves
+MAX_MOVES = 15
+#: m of lane the car stops short of the turn's stop line (front bumper), room for the first move
+ROOM_AHEAD_M = 4.0
+#: deceleration (m/s2) a move ends with
+STOP_DECEL = 1.5
+#: a move ends this far (m) short of where the footprint would reach an edge
+STOP_ROOM_M = 0.1
+#: m looked ahead along a move for its room, in steps of
+ROOM_LOOK_M = 4.0
+ROOM_STEP_M = 0.1
+#: an actor within this of the footprint the next move sweeps holds the move (m)
+ACTOR_CLEAR_M = 1.0
+#: the steering is at its lock within this (rad) before a move starts
+STEER_TOL = 0.05
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def footprint(x: float, y: float, yaw: float, half_l: float, half_w: float) -> np.ndarray:
+    """The four corners (4, 2) of a box centred at (x, y) heading ``yaw``."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    a = np.array([half_l, half_l, -half_l, -half_l])
+    b = np.array([half_w, -half_w, half_w, -half_w])
+    return np.column_stack([x + c * a - s * b, y + s * a + c * b])
+
+
+def arc_pose(x: float, y: float, yaw: float, dist: float, curvature: float, rear: float) -> tuple:
+    """The pose (x, y, yaw) of a car's reference point after its rear axle (``rear`` m along
+    the heading from that point, negative behind) travels ``dist`` m (negative: backwards) on a
+    circle of ``curvature`` (1/m, left positive)."""
+    rx, ry = x + rear * math.cos(yaw), y + rear * math.sin(yaw)
+    dth = dist * curvature
+    if abs(dth) < 1e-9:
+        rx, ry = rx + dist * math.cos(yaw), ry + dist * math.sin(yaw)
+    else:
+        r = 1.0 / curvature
+        rx += r * (math.sin(yaw + dth) - math.sin(yaw))
+        ry -= r * (math.cos(yaw + dth) - math.cos(yaw))
+    yaw2 = yaw + dth
+    return rx - rear * math.cos(yaw2), ry - rear * math.sin(yaw2), yaw2
+
+
+class Frame:
+    """Arc length and signed offset (left positive) of points along a polyline ``C``."""
+
+    def __init__(self, C: np.ndarray):
+        C = np.asarray(C, dtype=float)[:, :2]
+        keep = np.ones(len(C), dtype=bool)
+        keep[1:] = np.hypot(*np.diff(C, axis=0).T) > 1e-6
+        self.C = C[keep]
+        if len(self.C) < 2:
+            raise ValueError("a frame needs a polyline of two points or more")
+        self.a = self.C[:-1]
+        self.u = np.diff(self.C, axis=0)
+        self.len = np.hypot(self.u[:, 0], self.u[:, 1])
+        self.u = self.u / self.len[:, None]
+        self.s0 = np.concatenate([[0.0], np.cumsum(self.len)])[:-1]
+        self.length = float(self.s0[-1] + self.len[-1])
+
+    def sd(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(s, d) of points ``P`` (n, 2): the nearest segment's (its ends extended at the
+        polyline's ends)."""
+        P = np.asarray(P, dtype=float).reshape(-1, 2)
+        rel = P[:, None, :] - self.a[None, :, :]                         # (n, m, 2)
+        t = np.einsum("nmk,mk->nm", rel, self.u)
+        lo = np.where(np.arange(len(self.a)) == 0, -np.inf, 0.0)         # the first segment reaches back
+        hi = np.where(np.arange(len(self.a)) == len(self.a) - 1, np.inf, self.len)
+        tc = np.clip(t, lo[None, :], hi[None, :])
+        foot = self.a[None, :, :] + tc[..., None] * self.u[None, :, :]
+        dist = np.hypot(*(P[:, None, :] - foot).transpose(2, 0, 1))
+        j = np.argmin(dist, axis=1)
+        k = np.arange(len(P))
+        s = self.s0[j] + tc[k, j]
+        d = self.u[j, 0] * rel[k, j, 1] - self.u[j, 1] * rel[k, j, 0]
+        return s, d
+
+    def heading_at(self, s: float) -> float:
+        j = int(np.clip(np.searchsorted(self.s0, s, side="right") - 1, 0, len(self.u) - 1))
+        return math.atan2(self.u[j, 1], self.u[j, 0])
+
+
+class Carriageway:
+    """Where the car may turn round: between offsets ``right`` and ``left`` of :class:`Frame`
+    ``frame`` (the approach lane's centreline), up to arc length ``s_max`` (the approach lane's
+    end); ``side`` +1 where the far lane lies to the left, ``d_far`` that lane's centre."""
+
+    def __init__(self, frame: Frame, right: float, left: float, s_max: float, side: int, d_far: float):
+        self.frame, self.right, self.left, self.s_max = frame, right, left, s_max
+        self.side, self.d_far = side, d_far
+
+    @classmethod
+    def between(cls, C: np.ndarray, own_width: float, far_shape: np.ndarray, far_width: float,
+                near_s: float) -> "Carriageway":
+        """The approach lane (centreline ``C``, ending at the stop line) and the lane the
+        route turns back into (``far_shape``), the latter's offset taken around arc length
+        ``near_s`` (where the car turns)."""
+        frame = Frame(C)
+        F = np.asarray(far_shape, dtype=float)[:, :2]
+        s, d = frame.sd(F)
+        near = np.abs(s - near_s) <= 15.0
+        d_far = float(np.median(d[near] if near.any() else d))
+        side = 1 if d_far >= 0 else -1
+        lo = min(-own_width / 2.0, d_far - far_width / 2.0)
+        hi = max(own_width / 2.0, d_far + far_width / 2.0)
+        return cls(frame, lo, hi, frame.length, side, d_far)
+
+    def violation(self, P: np.ndarray) -> float:
+        """How far (m) corners ``P`` reach past the carriageway's edges or the lane's end,
+        margins included; <= 0 inside."""
+        s, d = self.frame.sd(P)
+        return float(max(np.max(d - (self.left - EDGE_MARGIN_M)), np.max((self.right + EDGE_MARGIN_M) - d),
+                         np.max(s - (self.s_max - EDGE_MARGIN_M))))
+
+
+def _is_done(cw: Carriageway, x: float, y: float, yaw: float) -> bool:
+    """The car heads within DONE_DEG of the way back (wherever it stands across the road: the
+    lane path takes it over to the far lane from there, turning away from the near edge)."""
+    s, _ = cw.frame.sd(np.array([[x, y]]))
+    back = cw.frame.heading_at(float(s[0])) + math.pi
+    return abs(_wrap(yaw - back)) <= math.radians(DONE_DEG)
+
+
+def room_along(cw: Carriageway, x: float, y: float, yaw: float, forward: bool, curvature: float,
+               half_l: float, half_w: float, rear: float, step: float = ROOM_STEP_M) -> float:
+    """How far (m, up to :data:`ROOM_LOOK_M`) a car at pose (x, y, yaw) can move (``forward``
+    or back) on a circle of ``curvature`` before its footprint reaches past the carriageway's
+    edges, margins included (or reaches further past them, where it is past already)."""
+    v0 = cw.violation(footprint(x, y, yaw, half_l, half_w))
+    dist = 0.0
+    while dist < ROOM_LOOK_M:
+        x2, y2, yaw2 = arc_pose(x, y, yaw, step if forward else -step, curvature, rear)
+        v1 = cw.violation(footprint(x2, y2, yaw2, half_l, half_w))
+        if v1 > 0.0 and v1 > v0:
+            return dist
+        x, y, yaw, v0 = x2, y2, yaw2, v1
+        dist += step
+    return dist
+
+
+def moves_needed(cw: Carriageway, x: float, y: float, yaw: float, half_l: float, half_w: float,
+                 radius: float, rear: float, step: float = 0.05) -> int | None:
+    """How many moves the car needs to turn round in ``cw`` from pose (x, y, yaw), on its
+    kinematics (rear axle on circles of ``radius`` at full lock), each move as far as its room
+    (:func:`room_along`) less twice :data:`STOP_ROOM_M` (where the car stops, and as much
+    again); None where it cannot."""
+    for move in range(MAX_MOVES):
+        forward = move % 2 == 0
+        curv = cw.side * (1.0 if forward else -1.0) / radius
+        go = room_along(cw, x, y, yaw, forward, curv, half_l, half_w, rear) - 2.0 * STOP_ROOM_M
+        if go < 0.1:
+            return None
+        for d in np.arange(step, go + 1e-9, step):
+            pose = arc_pose(x, y, yaw, d if forward else -d, curv, rear)
+            if _is_done(cw, *pose):
+                return move + 1
+        x, y, yaw = arc_pose(x, y, yaw, go if forward else -go, curv, rear)
+    return None
+
+
+class TurnRound:
+    """The moves (module doc) from the car standing in carriageway ``cw``: :meth:`control`
+    gives the pedals, steering and gear each frame until ``done`` (or ``failed``)."""
+
+    def __init__(self, cw: Carriageway, half_l: float, half_w: float, radius: float, rear: float,
+                 max_steer: float, to_lane: str, from_lane: str):
+        from .driving import SpeedController
+
+        self.cw = cw
+        self.half_l, self.half_w, self.radius, self.rear = half_l, half_w, radius, rear
+        self.max_steer = max_steer            # effective road-wheel angle at full lock (rad)
+        self.to_lane, self.from_lane = to_lane, from_lane
+        self.speed = SpeedController()
+        self.move = 0
+        self.phase = "steer"                  # steer (wheels to the lock, braked) / go / stop
+        self.moved = 0.0
+        self.last_xy = None
+        self.done = self.failed = False
+        self.finishing = False                # heading the way back: braking to a stop, then done
+        self.waiting = False
+        self.reverse = False
+
+    def _forward(self) -> bool:
+        return self.move % 2 == 0
+
+    def _steer_cmd(self) -> float:
+        return float(self.cw.side) * (1.0 if self._forward() else -1.0)
+
+    def room(self, x: float, y: float, yaw: float, forward: bool) -> float:
+        """How far (m) the car can go on at full lock from pose (x, y, yaw) before its
+        footprint reaches an edge of the carriageway (or further past it), up to ROOM_LOOK_M."""
+        curv = self._steer_cmd() / self.radius if forward == self._forward() else \
+            float(self.cw.side) * (1.0 if forward else -1.0) / self.radius
+        return room_along(self.cw, x, y, yaw, forward, curv, self.half_l, self.half_w, self.rear)
+
+    def _blocked(self, st, actors, ahead_m: float) -> bool:
+        """An actor within ACTOR_CLEAR_M of the footprint along the next ``ahead_m`` of the move."""
+        if actors is None or not len(actors):
+            return False
+        fwd = self._forward()
+        curv = self._steer_cmd() / self.radius
+        pts = []
+        for dist in np.linspace(0.0, ahead_m, 4):
+            x, y, yaw = arc_pose(st.x, st.y, st.yaw, dist if fwd else -dist, curv, self.rear)
+            pts.append(footprint(x, y, yaw, self.half_l, self.half_w))
+        P = np.vstack(pts)
+        ax, ay = np.asarray(actors.x, dtype=float), np.asarray(actors.y, dtype=float)
+        r = np.maximum(np.asarray(actors.length, dtype=float), np.asarray(actors.width, dtype=float)) / 2.0
+        cx, cy = st.x, st.y
+        near = np.hypot(ax - cx, ay - cy) < 2 * self.half_l + ahead_m + r + 3.0
+        if not near.any():
+            return False
+        d = np.min(np.hypot(ax[near, None] - P[None, :, 0], ay[near, None] - P[None, :, 1]), axis=1)
+        return bool(np.any(d < r[near] + ACTOR_CLEAR_M))
+
+    def control(self, st, dt: float, actors=None) -> tuple[float, float, float, bool]:
+        """(throttle, brake, steer, reverse) for this frame."""
+        fwd = self._forward()
+        steer = self._steer_cmd()
+        self.reverse = not fwd
+        self.waiting = False
+        v = float(st.speed)
+        if self.phase == "steer":
+            # braked until the wheels reach the lock (1.7 s from lock to lock)
+            if abs(st.steer - steer * self.max_steer) <= STEER_TOL and abs(v) < 0.1:
+                self.phase, self.moved, self.last_xy = "go", 0.0, (st.x, st.y)
+                self.speed.reset()
+            return 0.0, 1.0, steer, self.reverse
+        if self.phase == "go":
+            self.moved += math.hypot(st.x - self.last_xy[0], st.y - self.last_xy[1])
+            self.last_xy = (st.x, st.y)
+            if _is_done(self.cw, st.x, st.y, st.yaw):
+                self.phase, self.finishing = "stop", True
+                return 0.0, 1.0, steer, self.reverse
+            speed = abs(v)
+            room = self.room(st.x, st.y, st.yaw, fwd)
+            if room <= STOP_ROOM_M or self.moved > 4.0 * self.radius:
+                self.phase = "stop"
+            elif self._blocked(st, actors, speed * speed / (2.0 * STOP_DECEL) + 1.0):
+                self.waiting = True
+                return 0.0, 1.0, steer, self.reverse
+            else:
+                # slowing so as to stop STOP_ROOM_M short of the edge
+                target = min(MOVE_SPEED, math.sqrt(2.0 * STOP_DECEL * 0.5 * max(room - STOP_ROOM_M, 0.0)))
+                pitch = float(getattr(st, "pitch", 0.0))
+                th, br = self.speed.control(max(target, 0.3), speed, dt, pitch=pitch if fwd else -pitch)
+                return th, br, steer, self.reverse
+        # stop: braked to a standstill, then the next move
+        if abs(v) < 0.05:
+            if self.finishing:
+                self.done = True
+            elif self.moved < 0.1:
+                self.failed = True          # a move that cannot start: no room left
+            else:
+                self.move += 1
+                self.phase = "steer"
+                if self.move >= MAX_MOVES:
+                    self.failed = True
+        return 0.0, 1.0, steer, self.reverse
