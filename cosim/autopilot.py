@@ -54,7 +54,13 @@ Longitudinal: a target speed, the minimum of
   if no room comes (reason ``lane change``). Once ``LC_COMMIT`` of the way over it goes on. A
   queue (slower than ``LC_SLOW_MPS``) holds it back only with its follower within
   ``LC_SLOW_GAP_M`` of the car: the car merges behind the vehicle beside it;
-* the goal: stop at the snapped goal.
+* the goal: stop at the snapped goal;
+* a turn back onto the road's other direction tighter than the car can make (a dead end's
+  U-turn, which a route takes where it has no other way on): stop ``ROOM_AHEAD_M`` short of
+  it and turn round in moves forward and back inside the carriageway
+  (``cosim.turnround.TurnRound``; reason ``turning round``); where the carriageway has no room
+  for them the car stays stopped there (``no room to turn round``). The controls then carry
+  the gear: ``Autopilot.reverse`` is True for a move back (a user's driver drives forward).
 
 A PI speed controller with a force model (``cosim.driving.SpeedController``) turns the target
 into throttle and brake. It counts, for benchmarks, stops and near misses
@@ -661,7 +667,7 @@ class Autopilot:
         round``). False while the lanes' shapes or widths are still on their way."""
         from . import vehicle as V
         from .driving import car_turn_radius
-        from .turnround import Carriageway, TurnRound, moves_needed
+        from .turnround import SURFACE_STEP_MAX_M, Carriageway, TurnRound, moves_needed, surface_step
 
         far = self._lane_shape(u.to_lane)
         w_own, w_far = self._lane_width(u.lane), self._lane_width(u.to_lane)
@@ -677,19 +683,44 @@ class Autopilot:
         half_l, half_w = self.length / 2.0, self.width / 2.0
         rear = V.SPEC.rear_axle_x
         n = moves_needed(cw, st.x, st.y, st.yaw, half_l, half_w, car_turn_radius(), rear) if cw else None
-        if n is None:
+        step = surface_step(cw, st.x, st.y, self._surface_heights) if n is not None else 0.0
+        if n is None or step > SURFACE_STEP_MAX_M:
             self._no_room.add((u.lane, u.to_lane))
             self.stats.no_room_to_turn += 1
             self.stats.events.append((round(t, 2), "no room to turn round", u.lane))
-            width = (cw.left - cw.right) if cw else 0.0
-            log.warning("t=%.1f s: the route turns back at the end of lane %s and its carriageway (%.1f m) has no "
-                        "room for the car to turn round: it stops there", t, u.lane, width)
+            why = (f"a step of {step:.2f} m across its carriageway" if n is not None else
+                   f"its carriageway ({(cw.left - cw.right) if cw else 0.0:.1f} m) has no room for the moves")
+            log.warning("t=%.1f s: the route turns back at the end of lane %s and the car cannot turn round there (%s): "
+                        "it stops", t, u.lane, why)
             return False
         max_steer = math.atan(WHEELBASE / car_turn_radius())
         self._turn = TurnRound(cw, half_l, half_w, car_turn_radius(), rear, max_steer, u.to_lane, u.lane)
         log.info("t=%.1f s: turning round before the end of lane %s into %s (%d moves planned)", t, u.lane,
                  u.to_lane, n)
         return True
+
+    def _surface_heights(self, pts: np.ndarray) -> np.ndarray:
+        """The height of the world's static surface at points (n, 2): rays down from 4 m over the
+        car to 6 m under it, past the car's chassis; NaN where a ray meets nothing or a mirrored
+        actor (or without the physics world)."""
+        import pybullet as pb
+
+        sim = self.sim
+        phys, veh = getattr(sim, "physics", None), getattr(sim, "vehicle", None)
+        out = np.full(len(pts), np.nan)
+        if phys is None or phys.client is None or veh is None:
+            return out
+        z = float(veh.state().z)
+        actors = set(sim.mirror.body_actors()) if getattr(sim, "mirror", None) is not None else set()
+        for k0 in range(0, len(pts), 4000):
+            chunk = pts[k0:k0 + 4000]
+            hits = pb.rayTestBatch([(float(x), float(y), z + 4.0) for x, y in chunk],
+                                   [(float(x), float(y), z - 6.0) for x, y in chunk], numThreads=1,
+                                   collisionFilterMask=veh._ray_mask, physicsClientId=phys.client)
+            for k, h in enumerate(hits):
+                if h[0] >= 0 and h[0] not in actors:
+                    out[k0 + k] = h[3][2]
+        return out
 
     def _turning(self, st, actors, dt: float, t: float):
         """The turn round's controls; once done, the route goes on from the lane turned into

@@ -86,6 +86,8 @@ class Summary:
     sumo_teleports: int = 0
     persons_held: int = 0            # pedestrians that stopped rather than walk into the ego
     standoffs_released: int = 0      # vehicles taken out of SUMO after a standoff with the ego
+    turnarounds: int = 0             # turns round in moves forward and back (cosim.turnround)
+    no_room_to_turn: int = 0         # ... not made: the carriageway had no room (the car stopped there)
     ego_collisions: int = 0
     distance_m: float = 0.0
     sensor_range_violations: int = 0
@@ -123,6 +125,9 @@ class Summary:
                    f"{self.other_ways} time(s)" if self.other_ways else "")
                 + (f"; vehicles taken out after a standoff with the ego {self.standoffs_released}"
                    if self.standoffs_released else "")
+                + (f"; turned round in moves forward and back {self.turnarounds} time(s)" if self.turnarounds else "")
+                + (f"; stopped where the route turns back, with no room to turn round, {self.no_room_to_turn} "
+                   f"time(s)" if self.no_room_to_turn else "")
                 + (f"; the car stood still with the throttle on for {self.held_s:.0f} s (longest {self.held_longest_s:.0f} s)"
                    if self.held_longest_s >= HELD_WARN_S else "")
                 + f".{arr}")
@@ -189,6 +194,7 @@ class Simulation:
         self._swap_adopting = None
         self._swap_hold = 0                # frames left without reloading stale tiles
         self._extend_retry_t = 0.0         # no route extension before this sim time
+        self._no_way_on_said = None        # the route end a "no way on" warning was given for
         self._lc_stuck_since = None        # standing for a lane change since (LANE_CHANGE_GIVE_UP_S)
         self._warned_no_visuals = False    # camera_image without visual meshes (said once)
         self._extension_asked = None       # (route, generator state) of the extension prepared
@@ -764,6 +770,11 @@ class Simulation:
         if len(more) < 2:
             # nothing to drive on to (every draw ended where it began): drawn again in 2 s,
             # not every frame (each draw can take 0.4 s), prepared meanwhile
+            if self._no_way_on_said != last:
+                self._no_way_on_said = last
+                log.warning("t=%.1f s: no way on from road %s that the car can drive (each passes a tunnel, which "
+                            "the world has none of, or a turn the car cannot make): it stops at the end of its "
+                            "route", self.t, last)
             self._extend_retry_t = self.t + 2.0
             self._prepare_extension()
             return
@@ -1111,6 +1122,9 @@ class Simulation:
             s.persons_held = self.traffic.stats.persons_held
             s.standoffs_released = getattr(self.traffic.stats, "released", 0)
             s.swap_actors_lost = self._lost_before_restart + getattr(self.traffic.stats, "swap_lost", 0)
+        stats = getattr(self.driver, "stats", None)
+        s.turnarounds = getattr(stats, "turnarounds", 0)
+        s.no_room_to_turn = getattr(stats, "no_room_to_turn", 0)
         s.chunks_visited = len(self._chunks_seen)
         if self._frame_ms:
             f = np.array(self._frame_ms)

@@ -1825,7 +1825,16 @@ class SumoTraffic(Component):
             # it cannot go on from anywhere on the way (up the one-way street already), it has
             # no other way than that step: the route all the same
             cut = yield from self._drivable_head_steps(fallback)
-            return (cut, False) if (yield from escapes_steps(s, cut[-1])) else (fallback, False)
+            if (yield from escapes_steps(s, cut[-1])):
+                return cut, False
+            # nor from anywhere on the way (a pocket of streets, or a one-way street, whose ways
+            # out all pass a tunnel or such a turn: Monaco's Boulevard du Larvotto, one way, goes
+            # on only into its tunnel, which the world has not, and the car drove in at 9 m/s into
+            # Avenue d'Ostende's sidewalk): up to that step and back where the road has a U-turn
+            # there (the car turns round in moves: cosim.turnround), else up to that step, where
+            # the car stops
+            head, back = yield from self._turned_back_steps(fallback)
+            return (back or head), False
         if len(best) < 2:
             raise SimulationError(f"no route for the ego from edge {edge}")
         return best, False
@@ -1873,6 +1882,32 @@ class SumoTraffic(Component):
         while end > 1 and not (yield from escapes_steps(s, fixed[end - 1])):
             end -= 1
         return fixed[:end]
+
+    def _turned_back_steps(self, route: list):
+        """(``route`` up to its first step the car cannot drive or tunnel, that and then back
+        onto its last edge's other direction by its U-turn, or None where the edge has no U-turn
+        there for cars): a generator, yielding in its searches, whose value is the answer."""
+        from .driving import _drivable_lanes, _lane_allows, _links, is_tunnel, undrivable_steps_steps, \
+            without_turnarounds_steps
+
+        s = self._require()
+        fixed = (yield from without_turnarounds_steps(s, list(route)))[0]
+        bad = yield from undrivable_steps_steps(s, fixed)
+        end = len(fixed)
+        if bad:
+            end = next(k for k in range(len(fixed) - 1) if (fixed[k], fixed[k + 1]) == bad[0]) + 1
+        tun = next((k for k in range(1, end) if is_tunnel(s, fixed[k])), None)
+        if tun is not None:
+            end = tun
+        head = fixed[:end]
+        opp = opposite_edge(head[-1])
+        try:
+            for ln in _drivable_lanes(s, head[-1]):
+                if any(link[0].rsplit("_", 1)[0] == opp and _lane_allows(s, link[0]) for link in _links(s, ln)):
+                    return head, head + [opp]
+        except self._exc:
+            pass
+        return head, None
 
     def plan_route(self, lane: str, pos: float, goal_xy=None, rng_state=None, max_goal_snap_m: float = 1e9,
                    min_len: float = 800.0, keep_lane: bool = False, at_xy=None, beyond_ok: bool = False) -> dict:

@@ -42,6 +42,13 @@ STOP_ROOM_M = 0.1
 #: m looked ahead along a move for its room, in steps of
 ROOM_LOOK_M = 4.0
 ROOM_STEP_M = 0.1
+#: a step in the carriageway's surface higher than this (m, between points SURFACE_SPACING_M
+#: apart, within SURFACE_REACH_M along it of the car) leaves no room to turn round
+SURFACE_STEP_MAX_M = 0.15
+SURFACE_SPACING_M = 0.3
+SURFACE_REACH_M = 8.0
+#: a move held still this long (s) ends there
+STALL_S = 2.0
 #: an actor within this of the footprint the next move sweeps holds the move (m)
 ACTOR_CLEAR_M = 1.0
 #: the steering is at its lock within this (rad) before a move starts
@@ -110,6 +117,14 @@ class Frame:
         d = self.u[j, 0] * rel[k, j, 1] - self.u[j, 1] * rel[k, j, 0]
         return s, d
 
+    def xy(self, s: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """The points (n, 2) at arc lengths ``s`` and offsets ``d`` (left positive)."""
+        s = np.asarray(s, dtype=float)
+        j = np.clip(np.searchsorted(self.s0, s, side="right") - 1, 0, len(self.u) - 1)
+        t = s - self.s0[j]
+        u = self.u[j]
+        return self.a[j] + t[:, None] * u + np.asarray(d, dtype=float)[:, None] * np.column_stack([-u[:, 1], u[:, 0]])
+
     def heading_at(self, s: float) -> float:
         j = int(np.clip(np.searchsorted(self.s0, s, side="right") - 1, 0, len(self.u) - 1))
         return math.atan2(self.u[j, 1], self.u[j, 0])
@@ -154,6 +169,24 @@ def _is_done(cw: Carriageway, x: float, y: float, yaw: float) -> bool:
     s, _ = cw.frame.sd(np.array([[x, y]]))
     back = cw.frame.heading_at(float(s[0])) + math.pi
     return abs(_wrap(yaw - back)) <= math.radians(DONE_DEG)
+
+
+def surface_step(cw: Carriageway, x: float, y: float, heights, reach: float = SURFACE_REACH_M,
+                 spacing: float = SURFACE_SPACING_M) -> float:
+    """The largest height step (m) between neighbouring points of a grid ``spacing`` apart over
+    the carriageway within ``reach`` along it of (x, y), its edges kept 0.1 m off; ``heights``
+    maps points (n, 2) to the surface's heights there (NaN where unknown: left out). A road whose
+    two directions lie at different heights (0.5 m apart on a steep street: Monaco's Impasse
+    de la Fontaine) has no room to turn round: the car ran into the step and stood."""
+    s0 = float(cw.frame.sd(np.array([[x, y]]))[0][0])
+    ss = np.arange(max(0.0, s0 - reach), min(cw.s_max, s0 + reach) + 1e-9, spacing)
+    dd = np.arange(cw.right + 0.1, cw.left - 0.1 + 1e-9, spacing)
+    if len(ss) < 2 or len(dd) < 2:
+        return 0.0
+    S, Dd = np.meshgrid(ss, dd, indexing="ij")
+    z = np.asarray(heights(cw.frame.xy(S.ravel(), Dd.ravel())), dtype=float).reshape(S.shape)
+    steps = [np.abs(np.diff(z, axis=0)), np.abs(np.diff(z, axis=1))]
+    return float(max((np.nanmax(a) if np.isfinite(a).any() else 0.0) for a in steps))
 
 
 def room_along(cw: Carriageway, x: float, y: float, yaw: float, forward: bool, curvature: float,
@@ -212,6 +245,7 @@ class TurnRound:
         self.last_xy = None
         self.done = self.failed = False
         self.finishing = False                # heading the way back: braking to a stop, then done
+        self.stalled_s = 0.0                  # s the car has stood still in this move
         self.waiting = False
         self.reverse = False
 
@@ -258,12 +292,19 @@ class TurnRound:
         if self.phase == "steer":
             # braked until the wheels reach the lock (1.7 s from lock to lock)
             if abs(st.steer - steer * self.max_steer) <= STEER_TOL and abs(v) < 0.1:
-                self.phase, self.moved, self.last_xy = "go", 0.0, (st.x, st.y)
+                self.phase, self.moved, self.last_xy, self.stalled_s = "go", 0.0, (st.x, st.y), 0.0
                 self.speed.reset()
             return 0.0, 1.0, steer, self.reverse
         if self.phase == "go":
-            self.moved += math.hypot(st.x - self.last_xy[0], st.y - self.last_xy[1])
+            step = math.hypot(st.x - self.last_xy[0], st.y - self.last_xy[1])
+            self.moved += step
             self.last_xy = (st.x, st.y)
+            # held where it stands (a step in the road's surface the wheels do not climb at this
+            # speed): the move ends there
+            self.stalled_s = self.stalled_s + dt if step < 0.002 else 0.0
+            if self.stalled_s >= STALL_S:
+                self.phase = "stop"
+                return 0.0, 1.0, steer, self.reverse
             if _is_done(self.cw, st.x, st.y, st.yaw):
                 self.phase, self.finishing = "stop", True
                 return 0.0, 1.0, steer, self.reverse

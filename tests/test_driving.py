@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 
 import numpy as np
 import pytest
@@ -267,6 +268,7 @@ def test_a_route_that_turns_back_is_driven_as_a_turn_in_moves(lauf_pocket, tmp_p
     rows = [json.loads(line) for line in tel.read_text().splitlines()]
     turning = [r for r in rows if r["reason"].startswith("turning round")]
     assert stats.turnarounds >= 1 and stats.no_room_to_turn == 0, stats.as_dict()
+    assert summary.turnarounds == stats.turnarounds and "turned round in moves" in summary.line()
     assert summary.ego_collisions == 0 and summary.held_longest_s <= 0.5, summary.line()
     assert all(r["on_road"] for r in rows), [r["t"] for r in rows if not r["on_road"]][:5]
     assert min(r["speed_mps"] for r in turning) < -0.5          # moves back, in reverse
@@ -277,6 +279,39 @@ def test_a_route_that_turns_back_is_driven_as_a_turn_in_moves(lauf_pocket, tmp_p
     assert abs((after["yaw_deg"] - before["yaw_deg"] + 180.0) % 360.0 - 180.0) > 150.0, (before, after)
     moved_after = sum(math.hypot(b["x"] - a["x"], b["y"] - a["y"]) for a, b in zip(rows, rows[1:]) if a["t"] > t_done)
     assert moved_after > 100.0, moved_after
+
+
+def test_where_the_car_cannot_go_on_or_turn_round_it_stops_and_says_why(monaco, caplog):
+    """Monaco, no goal. Boulevard du Larvotto (92627403) is one way and goes on only into its
+    tunnel, which the world has not: the route took it, and the car drove in at 9 m/s into
+    Avenue d'Ostende's sidewalk, where it stood for good. Up the Impasse de la Fontaine
+    (-200502086#0) the route turns back where the street's two directions lie 0.5 m apart:
+    the car's first move ran into that step and stood there. Now the first route ends before
+    the tunnel, and the turn is not begun over such a step: the car stops, and says why."""
+    caplog.set_level(logging.INFO)
+    sim = start_sim(monaco, start=(43.737450, 7.425844), speed_mps=10.0, duration_s=30)
+    try:
+        from cosim.driving import is_tunnel
+
+        assert sim.route == ["92627403"] and is_tunnel(sim.traffic.sumo, "78149827")
+        assert sim.traffic.sumo.lane.getLinks("92627403_1")[0][0] == "78149827_1"
+        summary = sim.run()
+    finally:
+        sim.teardown()
+    assert summary.ego_collisions == 0 and 30.0 < summary.distance_m < 60.0, summary.line()
+    assert "no way on from road 92627403 that the car can drive" in caplog.text
+    caplog.clear()
+    sim = start_sim(monaco, start=(43.739606, 7.424848), speed_mps=10.0, duration_s=30)
+    try:
+        assert sim.route == ["-200502086#0", "200502086#0"], sim.route
+        summary = sim.run()
+        stats = sim.driver.stats
+    finally:
+        sim.teardown()
+    assert summary.ego_collisions == 0 and summary.held_longest_s < 1.0, summary.line()
+    assert stats.no_room_to_turn == 1 and stats.turnarounds == 0 and summary.no_room_to_turn == 1
+    m = re.search(r"cannot turn round there \(a step of (\d\.\d\d) m across its carriageway\)", caplog.text)
+    assert m and float(m.group(1)) > 0.3, caplog.text[-500:]
 
 
 def test_a_goal_behind_the_car_on_its_own_road_is_reached_round_the_block(helsinki):
