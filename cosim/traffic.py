@@ -1836,7 +1836,14 @@ class SumoTraffic(Component):
             head, back = yield from self._turned_back_steps(fallback)
             return (back or head), False
         if len(best) < 2:
-            raise SimulationError(f"no route for the ego from edge {edge}")
+            # no draw reached another road (a street of a few edges whose ends are dead ends, or
+            # lead only onto ways closed to cars: Lauf's Steyrer Straße, 23904724): along it to
+            # its end and back, where it has a U-turn there (the car turns round in moves:
+            # cosim.turnround)
+            back = self._along_and_back(edge)
+            if back is None:
+                raise SimulationError(f"no route for the ego from edge {edge}")
+            return back, False
         return best, False
 
     def _car_edges(self) -> list:
@@ -1882,6 +1889,50 @@ class SumoTraffic(Component):
         while end > 1 and not (yield from escapes_steps(s, fixed[end - 1])):
             end -= 1
         return fixed[:end]
+
+    def _along_and_back(self, edge: str, max_edges: int = 50) -> list | None:
+        """From ``edge`` on along the road (each edge's first link for cars to an edge not yet on
+        the way, through no tunnel, no turn the car cannot make and not back onto the road's other
+        direction): round to an
+        edge on the way again where it loops (Lauf's Steyrer Straße, 23904724, and 23904459#1
+        back to it), else to where it goes on no further and back by the last U-turn on the way;
+        None where the way has none for cars."""
+        from .driving import _drivable_lanes, _lane_allows, _links, _turnaround, is_tunnel
+
+        s = self._require()
+        route, seen = [edge], {edge}
+        try:
+            while len(route) < max_edges:
+                here = route[-1]
+                nxt, again = None, None
+                for ln in _drivable_lanes(s, here):
+                    for link in _links(s, ln):
+                        e = link[0].rsplit("_", 1)[0]
+                        if e == opposite_edge(here) or not _lane_allows(s, link[0]) or is_tunnel(s, e) \
+                                or _turnaround(s, here, e):
+                            continue
+                        if e not in seen:
+                            nxt = e
+                            break
+                        again = again or e
+                    if nxt is not None:
+                        break
+                if nxt is None:
+                    if again is not None:
+                        return route + [again]
+                    break
+                route.append(nxt)
+                seen.add(nxt)
+            # back along the way to the last edge with a U-turn (Steyrer Straße's 23904724#2:
+            # the way on from 23904459#1 is a turn the car cannot make, and it has no U-turn)
+            for k in range(len(route) - 1, -1, -1):
+                opp = opposite_edge(route[k])
+                for ln in _drivable_lanes(s, route[k]):
+                    if any(link[0].rsplit("_", 1)[0] == opp and _lane_allows(s, link[0]) for link in _links(s, ln)):
+                        return route[:k + 1] + [opp]
+        except self._exc:
+            pass
+        return None
 
     def _turned_back_steps(self, route: list):
         """(``route`` up to its first step the car cannot drive or tunnel, that and then back
