@@ -1828,13 +1828,14 @@ class SumoTraffic(Component):
             if (yield from escapes_steps(s, cut[-1])):
                 return cut, False
             # nor from anywhere on the way (a pocket of streets, or a one-way street, whose ways
-            # out all pass a tunnel or such a turn: Monaco's Boulevard du Larvotto, one way, goes
-            # on only into its tunnel, which the world has not, and the car drove in at 9 m/s into
-            # Avenue d'Ostende's sidewalk): up to that step and back where the road has a U-turn
-            # there (the car turns round in moves: cosim.turnround), else up to that step, where
-            # the car stops
-            head, back = yield from self._turned_back_steps(fallback)
-            return (back or head), False
+            # out all pass a tunnel or such a turn): up to that step and back where the road has
+            # a U-turn there (the car turns round in moves: cosim.turnround); else, before a
+            # tunnel, up to it, where the car stops (Monaco's Boulevard du Larvotto, one way, goes
+            # on only into its tunnel, which the world has not: the car drove in at 9 m/s into
+            # Avenue d'Ostende's sidewalk); before a turn, through it all the same (the car
+            # follows it closely and slowly where its sweep would touch something)
+            head, back, tunnel = yield from self._turned_back_steps(fallback)
+            return (back or (head if tunnel else fallback)), False
         if len(best) < 2:
             # no draw reached another road (a street of a few edges whose ends are dead ends, or
             # lead only onto ways closed to cars: Lauf's Steyrer Straße, 23904724): along it to
@@ -1936,8 +1937,9 @@ class SumoTraffic(Component):
 
     def _turned_back_steps(self, route: list):
         """(``route`` up to its first step the car cannot drive or tunnel, that and then back
-        onto its last edge's other direction by its U-turn, or None where the edge has no U-turn
-        there for cars): a generator, yielding in its searches, whose value is the answer."""
+        onto its last edge's other direction by its U-turn or None where the edge has no U-turn
+        there for cars, whether that step enters a tunnel): a generator, yielding in its
+        searches, whose value is the answer."""
         from .driving import _drivable_lanes, _lane_allows, _links, is_tunnel, undrivable_steps_steps, \
             without_turnarounds_steps
 
@@ -1951,14 +1953,15 @@ class SumoTraffic(Component):
         if tun is not None:
             end = tun
         head = fixed[:end]
+        tunnel = end < len(fixed) and is_tunnel(s, fixed[end])
         opp = opposite_edge(head[-1])
         try:
             for ln in _drivable_lanes(s, head[-1]):
                 if any(link[0].rsplit("_", 1)[0] == opp and _lane_allows(s, link[0]) for link in _links(s, ln)):
-                    return head, head + [opp]
+                    return head, head + [opp], tunnel
         except self._exc:
             pass
-        return head, None
+        return head, None, tunnel
 
     def plan_route(self, lane: str, pos: float, goal_xy=None, rng_state=None, max_goal_snap_m: float = 1e9,
                    min_len: float = 800.0, keep_lane: bool = False, at_xy=None, beyond_ok: bool = False) -> dict:

@@ -283,13 +283,13 @@ def test_a_route_that_turns_back_is_driven_as_a_turn_in_moves(lauf_pocket, tmp_p
 
 def test_a_pocket_of_streets_is_left_by_turning_round(kouvola, caplog, tmp_path):
     """Kouvola (the embedded preset): from -74057323#0 every way on ends at a dead end or a turn
-    the car cannot make, and so does the other direction's. The route turns back at the road's
-    end, where SUMO draws a U-turn 3-4 m round: the car turns round there in moves forward and
-    back, drives the other way, and stops (saying why) where that way has no way on either: a
-    tight right turn into 74057316#0, with no U-turn before it."""
+    tighter than the car can make, and so does the other direction's. The route turns back at
+    the road's end, where SUMO draws a U-turn 3-4 m round: the car turns round there in moves
+    forward and back, drives the other way, and leaves by the tight right turn into 74057316#0
+    (no U-turn before it: the route takes it all the same, and the car follows it)."""
     caplog.set_level(logging.INFO)
     tel = tmp_path / "t.jsonl"
-    sim = start_sim(kouvola, start=(60.532123, 26.944800), speed_mps=10.0, duration_s=90, telemetry=str(tel))
+    sim = start_sim(kouvola, start=(60.532123, 26.944800), speed_mps=10.0, duration_s=80, telemetry=str(tel))
     try:
         assert sim.route == ["-74057323#0", "74057323#0"], sim.route
         assert not sim.traffic.leads_on("-74057323#0_1") and not sim.traffic.leads_on("74057323#0_1")
@@ -301,8 +301,7 @@ def test_a_pocket_of_streets_is_left_by_turning_round(kouvola, caplog, tmp_path)
     assert summary.ego_collisions == 0 and stats.turnarounds == 1 and stats.no_room_to_turn == 0, summary.line()
     assert all(r["on_road"] for r in rows) and min(r["speed_mps"] for r in rows) < -0.5
     assert "turned round into 74057323#0_1" in caplog.text
-    assert "no way on from road 74057323#1 that the car can drive" in caplog.text
-    assert max(abs(r["speed_mps"]) for r in rows if r["t"] > 80.0) < 0.05        # stopped, where it says
+    assert any(r["lane"] == "74057316#0_1" for r in rows) and summary.distance_m > 300.0, summary.line()
 
 
 def test_where_the_car_cannot_go_on_or_turn_round_it_stops_and_says_why(monaco, caplog):
