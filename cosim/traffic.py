@@ -1876,7 +1876,19 @@ class SumoTraffic(Component):
     def _drivable_head_steps(self, route: list):
         """:meth:`_drivable_head` as a generator (yielding in its searches: its value is the
         answer; in one piece it took up to 9.5 ms in the step that drew the car's next route)."""
-        from .driving import escapes_steps, is_tunnel, undrivable_steps_steps, without_turnarounds_steps
+        from .driving import escapes_steps
+
+        s = self._require()
+        fixed, end = yield from self._head_steps(route)
+        while end > 1 and not (yield from escapes_steps(s, fixed[end - 1])):
+            end -= 1
+        return fixed[:end]
+
+    def _head_steps(self, route: list):
+        """(``route`` around what it can go around (``without_turnarounds``), the index of its
+        first step the car cannot drive or tunnel): a generator, yielding in its searches,
+        whose value is the answer."""
+        from .driving import is_tunnel, undrivable_steps_steps, without_turnarounds_steps
 
         s = self._require()
         fixed = (yield from without_turnarounds_steps(s, list(route)))[0]
@@ -1887,17 +1899,26 @@ class SumoTraffic(Component):
         tun = next((k for k in range(1, end) if is_tunnel(s, fixed[k])), None)
         if tun is not None:
             end = tun
-        while end > 1 and not (yield from escapes_steps(s, fixed[end - 1])):
-            end -= 1
-        return fixed[:end]
+        return fixed, end
+
+    def _has_uturn(self, edge: str) -> bool:
+        """Does a lane of ``edge`` for cars link to its road's other direction (a U-turn)?"""
+        from .driving import _drivable_lanes, _lane_allows, _links
+
+        s = self._require()
+        opp = opposite_edge(edge)
+        try:
+            return any(link[0].rsplit("_", 1)[0] == opp and _lane_allows(s, link[0])
+                       for ln in _drivable_lanes(s, edge) for link in _links(s, ln))
+        except self._exc:
+            return False
 
     def _along_and_back(self, edge: str, max_edges: int = 50) -> list | None:
         """From ``edge`` on along the road (each edge's first link for cars to an edge not yet on
         the way, through no tunnel, no turn the car cannot make and not back onto the road's other
-        direction): round to an
-        edge on the way again where it loops (Lauf's Steyrer Straße, 23904724, and 23904459#1
-        back to it), else to where it goes on no further and back by the last U-turn on the way;
-        None where the way has none for cars."""
+        direction): round to an edge on the way again where it loops, else to where it goes on no
+        further and back by the last U-turn on the way (Lauf's Steyrer Straße, 23904724); None
+        where the way has none for cars."""
         from .driving import _drivable_lanes, _lane_allows, _links, _turnaround, is_tunnel
 
         s = self._require()
@@ -1924,44 +1945,24 @@ class SumoTraffic(Component):
                     break
                 route.append(nxt)
                 seen.add(nxt)
-            # back along the way to the last edge with a U-turn (Steyrer Straße's 23904724#2:
-            # the way on from 23904459#1 is a turn the car cannot make, and it has no U-turn)
-            for k in range(len(route) - 1, -1, -1):
-                opp = opposite_edge(route[k])
-                for ln in _drivable_lanes(s, route[k]):
-                    if any(link[0].rsplit("_", 1)[0] == opp and _lane_allows(s, link[0]) for link in _links(s, ln)):
-                        return route[:k + 1] + [opp]
         except self._exc:
-            pass
-        return None
+            return None
+        # back along the way to the last edge with a U-turn (Steyrer Straße's 23904724#2: the
+        # way on from 23904459#1 is a turn the car cannot make, and it has no U-turn)
+        k = next((k for k in range(len(route) - 1, -1, -1) if self._has_uturn(route[k])), None)
+        return None if k is None else route[:k + 1] + [opposite_edge(route[k])]
 
     def _turned_back_steps(self, route: list):
         """(``route`` up to its first step the car cannot drive or tunnel, that and then back
         onto its last edge's other direction by its U-turn or None where the edge has no U-turn
         there for cars, whether that step enters a tunnel): a generator, yielding in its
         searches, whose value is the answer."""
-        from .driving import _drivable_lanes, _lane_allows, _links, is_tunnel, undrivable_steps_steps, \
-            without_turnarounds_steps
+        from .driving import is_tunnel
 
-        s = self._require()
-        fixed = (yield from without_turnarounds_steps(s, list(route)))[0]
-        bad = yield from undrivable_steps_steps(s, fixed)
-        end = len(fixed)
-        if bad:
-            end = next(k for k in range(len(fixed) - 1) if (fixed[k], fixed[k + 1]) == bad[0]) + 1
-        tun = next((k for k in range(1, end) if is_tunnel(s, fixed[k])), None)
-        if tun is not None:
-            end = tun
+        fixed, end = yield from self._head_steps(route)
         head = fixed[:end]
-        tunnel = end < len(fixed) and is_tunnel(s, fixed[end])
-        opp = opposite_edge(head[-1])
-        try:
-            for ln in _drivable_lanes(s, head[-1]):
-                if any(link[0].rsplit("_", 1)[0] == opp and _lane_allows(s, link[0]) for link in _links(s, ln)):
-                    return head, head + [opp], tunnel
-        except self._exc:
-            pass
-        return head, None, tunnel
+        tunnel = end < len(fixed) and is_tunnel(self._require(), fixed[end])
+        return head, (head + [opposite_edge(head[-1])] if self._has_uturn(head[-1]) else None), tunnel
 
     def plan_route(self, lane: str, pos: float, goal_xy=None, rng_state=None, max_goal_snap_m: float = 1e9,
                    min_len: float = 800.0, keep_lane: bool = False, at_xy=None, beyond_ok: bool = False) -> dict:

@@ -1,7 +1,7 @@
 """Turning round where the route turns back: a multi-point turn inside the carriageway.
 
 A route the car has no other way on for (a dead end, a pocket of streets whose every way out
-is closed to cars: Lauf's Bitterbachstraße and the streets off it) turns back on itself, with
+is closed to cars: Lauf's Krummleitenweg and the streets off it) turns back on itself, with
 a U-turn link SUMO draws as a loop of 3-4 m radius. The car turns no tighter than 4.6 m (its
 rear axle at full lock) and ran 6 m wide of that loop, off the road and into what stood there.
 A driver turns round in a few moves instead: forward at full lock across the road, back at

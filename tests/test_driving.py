@@ -50,24 +50,24 @@ def helsinki(tmp_path_factory):
     return str(out)
 
 
-@pytest.fixture(scope="module")
-def monaco(tmp_path_factory):
-    osm = shared_file("osm/monaco-2022.osm.pbf")
-    dem = shared_file("dem/N43E007.hgt")
-    out = tmp_path_factory.mktemp("drv") / "monaco"
-    build_world(WorldConfig(osm=str(osm), dem=[str(dem)], center=(43.7384, 7.4246), chunks=0, out=str(out),
-                            cache_dir=str(out.parent / "cache")))
-    return str(out)
-
-
-def _portland_world(tmp_path_factory, name: str, center: tuple) -> str:
-    """One chunk of Portland (OSM and NED from ../shared/data) around `center`."""
-    osm = shared_file("osm/portland-central-2015.osm.pbf")
-    dem = shared_file("dem/portland-ned.tif")
+def shared_world(tmp_path_factory, name: str, osm: str, dem: str, center) -> str:
+    """A one-chunk world built from an extract and a DEM of ``../shared/data`` (skipped,
+    naming the file, where it is absent)."""
+    osm, dem = shared_file(osm), shared_file(dem)
     out = tmp_path_factory.mktemp("drv") / name
     build_world(WorldConfig(osm=str(osm), dem=[str(dem)], center=center, chunks=0, out=str(out),
                             cache_dir=str(out.parent / "cache")))
     return str(out)
+
+
+@pytest.fixture(scope="module")
+def monaco(tmp_path_factory):
+    return shared_world(tmp_path_factory, "monaco", "osm/monaco-2022.osm.pbf", "dem/N43E007.hgt", (43.7384, 7.4246))
+
+
+def _portland_world(tmp_path_factory, name: str, center: tuple) -> str:
+    """One chunk of Portland (OSM and NED from ../shared/data) around `center`."""
+    return shared_world(tmp_path_factory, name, "osm/portland-central-2015.osm.pbf", "dem/portland-ned.tif", center)
 
 
 @pytest.fixture(scope="module")
@@ -201,14 +201,9 @@ def test_a_start_facing_a_dead_end_turns_round_to_the_goal(kouvola):
 
 @pytest.fixture(scope="module")
 def lauf_pocket(tmp_path_factory):
-    """Lauf, one chunk round Bitterbachstraße (way 24446380) and the streets off it: every way
+    """Lauf, one chunk round Krummleitenweg (way 24446380) and the streets off it: every way
     out of them is closed to cars (tracks, service ways), so a route from there turns back."""
-    osm = shared_file("osm/lauf-2020.osm.pbf")
-    dem = shared_file("dem/N49E011.hgt.zip")
-    out = tmp_path_factory.mktemp("drv") / "lauf"
-    build_world(WorldConfig(osm=str(osm), dem=[str(dem)], center=(49.5003, 11.2640), chunks=0, out=str(out),
-                            cache_dir=str(out.parent / "cache")))
-    return str(out)
+    return shared_world(tmp_path_factory, "lauf", "osm/lauf-2020.osm.pbf", "dem/N49E011.hgt.zip", (49.5003, 11.2640))
 
 
 def test_the_turn_round_moves_stay_in_the_carriageway():
@@ -253,7 +248,7 @@ def test_the_turn_round_moves_stay_in_the_carriageway():
 
 
 def test_a_route_that_turns_back_is_driven_as_a_turn_in_moves(lauf_pocket, tmp_path):
-    """Lauf: from Bitterbachstraße every way on ends in a dead end or at a way closed to cars,
+    """Lauf: from Krummleitenweg every way on ends in a dead end or at a way closed to cars,
     and the random route turns back on itself where SUMO draws a U-turn 3-4 m round. The car
     drove that loop at full lock 6 m wide of it: off the road for 78 s of 110, into a building
     (at 1.3 m/s), where it stood 77 s. It now stops short of the turn and turns round in moves
