@@ -6,13 +6,15 @@ a U-turn link SUMO draws as a loop of 3-4 m radius. The car turns no tighter tha
 rear axle at full lock) and ran 6 m wide of that loop, off the road and into what stood there.
 A driver turns round in a few moves instead: forward at full lock across the road, back at
 the other lock, forward again, until the car faces the other way. :class:`TurnRound` does
-that: each move goes until the car's footprint, a moment of braking ahead, would leave the
-carriageway (the approach lane and the lane it turns back into, as SUMO draws them), or the
-lane's end ahead; it waits while an actor stands in the way of the move; it is done when the
-car heads within :data:`DONE_DEG` of the way back. :func:`moves_needed`
-runs the same moves on the car's kinematics first, so that a road too narrow for them (in
-about 6 m of carriageway the car needs 11 moves, in 5 m none suffice) is known before the car
-starts.
+that: each move goes, slowing, until the car's footprint would come within
+:data:`STOP_ROOM_M` of leaving the carriageway (the approach lane and the lane it turns back
+into, as SUMO draws them, less :data:`EDGE_MARGIN_M`) or of the lane's end ahead; it waits
+while an actor stands in the way of the move, ends where the car is held still; it is done
+when the car heads within :data:`DONE_DEG` of the way back. :func:`moves_needed` runs the same
+moves on the car's kinematics first, so that a road too narrow for them (on SUMO's default
+6.4 m of carriageway the car needs 9 moves, on 6 m none suffice) is known before the car
+starts, and :func:`surface_step` finds a step across the carriageway that the wheels would not
+climb.
 
 The frame: ``C``, the approach lane's centreline (the lane path up to the stop line), along
 which a point has its arc length ``s`` and its signed offset ``d`` (left positive). The
