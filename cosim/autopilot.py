@@ -59,8 +59,10 @@ Longitudinal: a target speed, the minimum of
   U-turn, which a route takes where it has no other way on): stop ``ROOM_AHEAD_M`` short of
   it and turn round in moves forward and back inside the carriageway
   (``cosim.turnround.TurnRound``; reason ``turning round``); where the carriageway has no room
-  for them the car stays stopped there (``no room to turn round``). The controls then carry
-  the gear: ``Autopilot.reverse`` is True for a move back (a user's driver drives forward).
+  for them, or a step across it, the car stays stopped there (``no room to turn round``). The
+  controls then carry the gear: ``Autopilot.reverse`` is True for a move back (the
+  simulation reads a driver's ``reverse``; :class:`CallbackDriver`'s function may return it
+  as a fourth value, and the observation's ``autopilot_reverse`` suggests it).
 
 A PI speed controller with a force model (``cosim.driving.SpeedController``) turns the target
 into throttle and brake. It counts, for benchmarks, stops and near misses
@@ -1845,12 +1847,13 @@ class Autopilot:
             "lead_speed": None if self.lead is None else self.lead.speed,
             "lead_kind": None if self.lead is None else self.lead.kind,
             "next_control": nc, "light_code": code,   # 0 none/priority, 1 green, 2 yellow, 3 red, 4 stop, 5 yield
-            "autopilot": self.last,
+            "autopilot": self.last, "autopilot_reverse": self.reverse,
         }
 
 
 class CallbackDriver:
-    """Drive with your own function: ``fn(obs) -> (throttle, brake, steer)``.
+    """Drive with your own function: ``fn(obs) -> (throttle, brake, steer)``, or with a fourth,
+    ``reverse`` (True: the reverse gear).
 
     ``obs`` is :meth:`Autopilot.observation` (the autopilot runs alongside as the perception
     and to suggest a command, ``obs["autopilot"]``, but only ``fn``'s command is applied).
@@ -1863,10 +1866,12 @@ class CallbackDriver:
         self.speed = self.autopilot.speed
         self.target_speed = float("nan")
         self.last_obs: dict = {}
+        self.reverse = False
 
     def control(self, st, s_here, actors, dt):
         self.autopilot.control(st, s_here, actors, dt)
         self.last_obs = obs = self.autopilot.observation()
-        out = self.fn(obs)
-        throttle, brake, steer = (float(x) for x in out)
+        out = list(self.fn(obs))
+        throttle, brake, steer = (float(x) for x in out[:3])
+        self.reverse = bool(out[3]) if len(out) > 3 else False     # (an optional fourth: reverse gear)
         return (max(0.0, min(1.0, throttle)), max(0.0, min(1.0, brake)), max(-1.0, min(1.0, steer)))

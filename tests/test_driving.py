@@ -891,6 +891,17 @@ def test_env_step_api_and_callback_driver(helsinki):
         sim.teardown()
     assert len(calls) == 100
     assert math.hypot(x1.x - x0.x, x1.y - x0.y) > 40.0 and max(lats) < 1.0
+    # a fourth value selects the reverse gear: the car backs up along its heading
+    sim = start_sim(helsinki, start=HEL_MID, duration_s=30)
+    try:
+        sim.driver = CallbackDriver(sim, lambda obs: (0.3, 0.0, 0.0, True))
+        x0 = sim.vehicle.state()
+        speeds = [sim.step().speed for _ in range(30)]
+        x1 = sim.vehicle.state()
+    finally:
+        sim.teardown()
+    back = (x1.x - x0.x) * math.cos(x0.yaw) + (x1.y - x0.y) * math.sin(x0.yaw)
+    assert min(speeds) < -1.0 and back < -1.0, (min(speeds), back)
 
 
 def test_live_controls_refuse_bad_input_and_a_refused_goal_keeps_the_current_one(helsinki):
