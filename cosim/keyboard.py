@@ -1,5 +1,6 @@
-"""Keyboard driving: arrow keys or WASD for throttle, brake and steering; M toggles manual and
-automatic driving. One mapping, two front ends: PyBullet's 3D window (polled with
+"""Keyboard driving: arrow keys or WASD for throttle, brake and steering; R puts the car in
+reverse and back in drive (the throttle then backs it up); M toggles manual and automatic
+driving. One mapping, two front ends: PyBullet's 3D window (polled with
 ``getKeyboardEvents`` in the loop) and the Qt window (which feeds key presses to
 :meth:`KeyboardControl.press` / :meth:`release`).
 
@@ -13,6 +14,7 @@ BRAKE_KEYS = {"down", "s"}
 LEFT_KEYS = {"left", "a"}
 RIGHT_KEYS = {"right", "d"}
 TOGGLE_KEYS = {"m"}
+REVERSE_KEYS = {"r"}
 
 
 class KeyboardControl:
@@ -20,12 +22,18 @@ class KeyboardControl:
         self.held: set = set()
         self.manual = False
         self.throttle = self.brake = self.steer = 0.0
+        self.reverse = False          # the gear: reverse (R toggles it while driving by hand)
         self.ramp, self.steer_rate = ramp_per_s, steer_per_s
 
     def press(self, key: str) -> None:
         key = key.lower()
         if key in TOGGLE_KEYS:
             self.manual = not self.manual
+            self.reverse = False
+            return
+        if key in REVERSE_KEYS:
+            self.reverse = not self.reverse
+            self.manual = True
             return
         self.held.add(key)
         if key in THROTTLE_KEYS | BRAKE_KEYS | LEFT_KEYS | RIGHT_KEYS:

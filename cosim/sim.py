@@ -613,8 +613,11 @@ class Simulation:
                 throttle, brake, steer = self.driver.control(st, s_here, self.mirror.as_placed(snap),
                                                              cfg.step_length_s)
             self.last_control = (throttle, brake, steer)
-        self.vehicle.apply_control(throttle, brake, steer,
-                                   reverse=self.manual is None and getattr(self.driver, "reverse", False))
+        if self.manual is None:
+            reverse = bool(getattr(self.driver, "reverse", False))
+        else:                       # (by hand: the keyboard's gear)
+            reverse = bool(getattr(self.keyboard, "reverse", False) and getattr(self.keyboard, "manual", False))
+        self.vehicle.apply_control(throttle, brake, steer, reverse=reverse)
         self.vehicle.step(self.substeps)
         self._check_collisions()
         self._check_held(st, throttle, brake)

@@ -604,6 +604,13 @@ def test_run_with_live_controls_then_stop(win, qtbot, kouvola_world):
     qtbot.keyRelease(win.map, Qt.Key_S)
     qtbot.keyRelease(win.map, Qt.Key_A)
     qtbot.waitUntil(lambda: win.last_frame["control"][1] == 0.0, timeout=10_000)
+    # R: reverse, and the throttle backs the car up; R again: drive
+    qtbot.waitUntil(lambda: abs(win.last_frame["ego"]["speed"]) < 0.5, timeout=20_000)
+    qtbot.keyClick(win.map, Qt.Key_R)
+    qtbot.keyPress(win.map, Qt.Key_Up)
+    qtbot.waitUntil(lambda: win.last_frame["ego"]["speed"] < -0.5, timeout=10_000)
+    qtbot.keyRelease(win.map, Qt.Key_Up)
+    qtbot.keyClick(win.map, Qt.Key_R)
     qtbot.keyClick(win.map, Qt.Key_M)
     qtbot.waitUntil(lambda: not win.last_frame["manual"], timeout=10_000)
     assert win.live["mode"].text() == "automatic"

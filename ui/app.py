@@ -11,7 +11,8 @@ comes back through signals. States (see :class:`ui.validation.StateMachine`):
     Simulation --failed--> Error
 
 Keys while the simulation runs and the focus is not in a text field: arrows / WASD drive
-(throttle, brake, steer), M toggles manual and automatic driving, Esc leaves a text field.
+(throttle, brake, steer), R toggles reverse, M toggles manual and automatic driving, Esc leaves
+a text field.
 """
 from __future__ import annotations
 
@@ -39,7 +40,7 @@ from .mapview import MapView
 from .worker import CheckWorker, SimWorker, WorkerThread
 
 KEYS = {Qt.Key_Up: "up", Qt.Key_Down: "down", Qt.Key_Left: "left", Qt.Key_Right: "right",
-        Qt.Key_W: "w", Qt.Key_A: "a", Qt.Key_S: "s", Qt.Key_D: "d", Qt.Key_M: "m"}
+        Qt.Key_W: "w", Qt.Key_A: "a", Qt.Key_S: "s", Qt.Key_D: "d", Qt.Key_M: "m", Qt.Key_R: "r"}
 ERROR_STYLE = "border: 1px solid #d0302a; background: #fff3f2;"
 
 
@@ -288,7 +289,7 @@ class MainWindow(QMainWindow):
         gl.setColumnStretch(1, 1)
         lv.addWidget(g)
         lv.addStretch(1)
-        hint = QLabel("Keys: arrows / WASD drive, M manual/auto, Esc leaves a text field")
+        hint = QLabel("Keys: arrows / WASD drive, R reverse, M manual/auto, Esc leaves a text field")
         hint.setWordWrap(True)
         hint.setStyleSheet("color: #666;")
         lv.addWidget(hint)
