@@ -289,7 +289,9 @@ class MainWindow(QMainWindow):
         gl.setColumnStretch(1, 1)
         lv.addWidget(g)
         lv.addStretch(1)
-        hint = QLabel("Keys: arrows / WASD drive, R reverse, M manual/auto, Esc leaves a text field")
+        hint = QLabel("Keys: WASD/arrows, R reverse, M manual/auto")
+        hint.setToolTip("WASD or the arrows drive; R toggles reverse; M toggles manual and automatic driving; "
+                        "Esc leaves a text field")
         hint.setWordWrap(True)
         hint.setStyleSheet("color: #666;")
         lv.addWidget(hint)
