@@ -632,11 +632,8 @@ class Autopilot:
         """A lane's width (m; cached), None while SUMO's worker has not sent it yet."""
         got = self._lane_widths.get(lane)
         if got is None:
-            tr = self.sim.traffic
-            answered = getattr(tr, "answered", None)
             try:
-                got = answered(("sumo", "lane", "getWidth"), (lane,)) if answered is not None \
-                    else tr.sumo.lane.getWidth(lane)
+                got = self._lane_read("getWidth", lane)
             except Exception:
                 got = 3.2
             if got is NOT_YET:
@@ -1285,15 +1282,10 @@ class Autopilot:
         drive at about 400 actors, each for a vehicle seen on a new lane)."""
         got = self._lane_shapes.get(lane)
         if got is None:
-            tr = self.sim.traffic
-            answered = getattr(tr, "answered", None)
             try:
-                if answered is not None:    # (SUMO in its worker: not waiting for the step in flight)
-                    P = answered(("sumo", "lane", "getShape"), (lane,))
-                    if P is NOT_YET:
-                        return None
-                else:
-                    P = tr.sumo.lane.getShape(lane)
+                P = self._lane_read("getShape", lane)
+                if P is NOT_YET:
+                    return None
                 P = np.asarray(P, dtype=float)[:, :2]
             except Exception:
                 P = np.zeros((0, 2))
@@ -1304,6 +1296,15 @@ class Autopilot:
                 got = (np.zeros((0, 2)), np.zeros(0))
             self._lane_shapes[lane] = got
         return got
+
+    def _lane_read(self, fn: str, lane: str):
+        """SUMO's ``lane.<fn>(lane)``, a network answer: from SUMO's worker without waiting for
+        the step in flight (NOT_YET until it is in, by the next frame), else in process."""
+        tr = self.sim.traffic
+        answered = getattr(tr, "answered", None)
+        if answered is not None:
+            return answered(("sumo", "lane", fn), (lane,))
+        return getattr(tr.sumo.lane, fn)(lane)
 
     def _vias(self, lane: str) -> tuple:
         """The junction lanes that the links of (normal) lane `lane` go through (the whole

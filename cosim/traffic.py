@@ -1914,37 +1914,26 @@ class SumoTraffic(Component):
             return False
 
     def _along_and_back(self, edge: str, max_edges: int = 50) -> list | None:
-        """From ``edge`` on along the road (each edge's first link for cars to an edge not yet on
-        the way, through no tunnel, no turn the car cannot make and not back onto the road's other
-        direction): round to an edge on the way again where it loops, else to where it goes on no
-        further and back by the last U-turn on the way (Lauf's Steyrer Straße, 23904724); None
-        where the way has none for cars."""
-        from .driving import _drivable_lanes, _lane_allows, _links, _turnaround, is_tunnel
+        """From ``edge`` on along the road (each edge's first step the car can drive,
+        ``cosim.driving._drivable_nexts``, to an edge not yet on the way and not back onto the
+        road's other direction): round to an edge on the way again where it loops, else to where
+        it goes on no further and back by the last U-turn on the way (Lauf's Steyrer Straße,
+        23904724); None where the way has none for cars."""
+        from .driving import _drivable_nexts
 
         s = self._require()
-        route, seen = [edge], {edge}
+        route = [edge]
         try:
             while len(route) < max_edges:
                 here = route[-1]
-                nxt, again = None, None
-                for ln in _drivable_lanes(s, here):
-                    for link in _links(s, ln):
-                        e = link[0].rsplit("_", 1)[0]
-                        if e == opposite_edge(here) or not _lane_allows(s, link[0]) or is_tunnel(s, e) \
-                                or _turnaround(s, here, e):
-                            continue
-                        if e not in seen:
-                            nxt = e
-                            break
-                        again = again or e
-                    if nxt is not None:
-                        break
-                if nxt is None:
-                    if again is not None:
-                        return route + [again]
+                nexts = [(ne, via) for ne, _w, via in _drivable_nexts(s, here) if ne != opposite_edge(here)]
+                ne, via = next(((ne, via) for ne, via in nexts if ne not in route), (None, None))
+                if ne is None:
+                    if nexts:                   # (it loops: round to the edge on the way again)
+                        ne, via = nexts[0]
+                        return route + ([via] if via else []) + [ne]
                     break
-                route.append(nxt)
-                seen.add(nxt)
+                route += ([via] if via else []) + [ne]
         except self._exc:
             return None
         # back along the way to the last edge with a U-turn (Steyrer Straße's 23904724#2: the

@@ -249,7 +249,6 @@ class TurnRound:
         self.finishing = False                # heading the way back: braking to a stop, then done
         self.stalled_s = 0.0                  # s the car has stood still in this move
         self.waiting = False
-        self.reverse = False
 
     def _forward(self) -> bool:
         return self.move % 2 == 0
@@ -257,12 +256,11 @@ class TurnRound:
     def _steer_cmd(self) -> float:
         return float(self.cw.side) * (1.0 if self._forward() else -1.0)
 
-    def room(self, x: float, y: float, yaw: float, forward: bool) -> float:
-        """How far (m) the car can go on at full lock from pose (x, y, yaw) before its
+    def room(self, x: float, y: float, yaw: float) -> float:
+        """How far (m) this move can go on at full lock from pose (x, y, yaw) before the car's
         footprint reaches an edge of the carriageway (or further past it), up to ROOM_LOOK_M."""
-        curv = self._steer_cmd() / self.radius if forward == self._forward() else \
-            float(self.cw.side) * (1.0 if forward else -1.0) / self.radius
-        return room_along(self.cw, x, y, yaw, forward, curv, self.half_l, self.half_w, self.rear)
+        return room_along(self.cw, x, y, yaw, self._forward(), self._steer_cmd() / self.radius,
+                          self.half_l, self.half_w, self.rear)
 
     def _blocked(self, st, actors, ahead_m: float) -> bool:
         """An actor within ACTOR_CLEAR_M of the footprint along the next ``ahead_m`` of the move."""
@@ -287,8 +285,7 @@ class TurnRound:
     def control(self, st, dt: float, actors=None) -> tuple[float, float, float, bool]:
         """(throttle, brake, steer, reverse) for this frame."""
         fwd = self._forward()
-        steer = self._steer_cmd()
-        self.reverse = not fwd
+        steer, rev = self._steer_cmd(), not fwd
         self.waiting = False
         v = float(st.speed)
         if self.phase == "steer":
@@ -296,7 +293,7 @@ class TurnRound:
             if abs(st.steer - steer * self.max_steer) <= STEER_TOL and abs(v) < 0.1:
                 self.phase, self.moved, self.last_xy, self.stalled_s = "go", 0.0, (st.x, st.y), 0.0
                 self.speed.reset()
-            return 0.0, 1.0, steer, self.reverse
+            return 0.0, 1.0, steer, rev
         if self.phase == "go":
             step = math.hypot(st.x - self.last_xy[0], st.y - self.last_xy[1])
             self.moved += step
@@ -306,23 +303,23 @@ class TurnRound:
             self.stalled_s = self.stalled_s + dt if step < 0.002 else 0.0
             if self.stalled_s >= STALL_S:
                 self.phase = "stop"
-                return 0.0, 1.0, steer, self.reverse
+                return 0.0, 1.0, steer, rev
             if _is_done(self.cw, st.x, st.y, st.yaw):
                 self.phase, self.finishing = "stop", True
-                return 0.0, 1.0, steer, self.reverse
+                return 0.0, 1.0, steer, rev
             speed = abs(v)
-            room = self.room(st.x, st.y, st.yaw, fwd)
+            room = self.room(st.x, st.y, st.yaw)
             if room <= STOP_ROOM_M or self.moved > 4.0 * self.radius:
                 self.phase = "stop"
             elif self._blocked(st, actors, speed * speed / (2.0 * STOP_DECEL) + 1.0):
                 self.waiting = True
-                return 0.0, 1.0, steer, self.reverse
+                return 0.0, 1.0, steer, rev
             else:
                 # slowing so as to stop STOP_ROOM_M short of the edge
                 target = min(MOVE_SPEED, math.sqrt(2.0 * STOP_DECEL * 0.5 * max(room - STOP_ROOM_M, 0.0)))
                 pitch = float(getattr(st, "pitch", 0.0))
                 th, br = self.speed.control(max(target, 0.3), speed, dt, pitch=pitch if fwd else -pitch)
-                return th, br, steer, self.reverse
+                return th, br, steer, rev
         # stop: braked to a standstill, then the next move
         if abs(v) < 0.05:
             if self.finishing:
@@ -334,4 +331,4 @@ class TurnRound:
                 self.phase = "steer"
                 if self.move >= MAX_MOVES:
                     self.failed = True
-        return 0.0, 1.0, steer, self.reverse
+        return 0.0, 1.0, steer, rev
