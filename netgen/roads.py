@@ -471,6 +471,17 @@ def _repaired(polys):
     return shapely.make_valid(polys, method="structure", keep_collapsed=False)
 
 
+def _repaired_polygons(rings) -> np.ndarray:
+    """Polygons of ``rings`` (open, (n, 2) each), the invalid ones repaired (:func:`_repaired`)."""
+    if not len(rings):
+        return np.empty(0, dtype=object)
+    R, g = _concat(rings)
+    polys = shapely.polygons(shapely.linearrings(R, indices=g))
+    bad = ~shapely.is_valid(polys)
+    polys[bad] = _repaired(polys[bad])
+    return polys
+
+
 def _open_ring(shape):
     """A polygon shape without its closing point, or None with fewer than 3 points left."""
     ring = shape
@@ -525,6 +536,9 @@ def _polygon_rings(geom, min_area: float = 0.5) -> list:
 #: a vehicle lane inside a junction is "off" the junction's polygon where this much of its
 #: middle (m, away from its ends) lies more than 0.3 m outside it
 JUNCTION_GAP_M = 1.0
+#: a corner of such a lane's strip on a road's vehicle lane, at most this far from its height
+#: (m), takes that lane's height (build_roads)
+GAP_ONTO_LANE_MAX_M = 0.8
 
 
 def junction_gaps(net) -> tuple[list, list]:
@@ -560,10 +574,7 @@ def _junction_gaps(net) -> tuple[list, list]:
             rings.append(r)
     if not rings:
         return [], []
-    R, rg = _concat(rings)
-    jpoly = shapely.polygons(shapely.linearrings(R, indices=rg))
-    bad = ~shapely.is_valid(jpoly)
-    jpoly[bad] = _repaired(jpoly[bad])
+    jpoly = _repaired_polygons(rings)
     shapely.prepare(jpoly)
     # the middles, a point every half metre, without the first and last metre (where lanes
     # meet); a point is off when more than 0.3 m outside the polygon
@@ -632,10 +643,7 @@ def _lane_end_gaps(edges, lane_edge, C, cg, cs, ctot, nrm, drive, jrings) -> tup
         return none
     ea, en = np.array(ea), np.array(en)
     jids, jnum = np.unique(np.array(ej), return_inverse=True)
-    JR, jg = _concat([jrings[j] for j in jids])
-    jarr = shapely.polygons(shapely.linearrings(JR, indices=jg))
-    bad = ~shapely.is_valid(jarr)
-    jarr[bad] = _repaired(jarr[bad])
+    jarr = _repaired_polygons([jrings[j] for j in jids])
     off = np.maximum(shapely.distance(jarr[jnum], shapely.points(C[ea] + nrm[ea])),
                      shapely.distance(jarr[jnum], shapely.points(C[ea] - nrm[ea])))
     cand = np.zeros(len(jids), dtype=bool)
@@ -922,7 +930,7 @@ def _bridge_decks(edges, ref_e, rg, rs, rtot, rz, deck) -> None:
     rz[pd] = (z0 + u * (z1 - z0))[pd]
 
 
-def _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, clearance) -> None:
+def _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, clearance, junction_clearance=None) -> None:
     """Lowest OSM layer first, where a road passes under a deck (:func:`_bridge_decks`;
     ``clearance(points, their edges, under-edge mask)``: the heights needed there,
     :func:`_deck_clearance`; a deck of a lower layer counts as a road), the deck rises to clear
@@ -931,30 +939,86 @@ def _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, clearance) -> None:
     height, and the road under it crosses it there, conformed to it as an untagged bridge is:
     reaching the clearance would take approaches OSM does not tag as the bridge). After the
     junction planes, so that the roads under it have their heights. ``deck``: per profile,
-    ``edge_deck``: per edge."""
+    ``edge_deck``: per edge.
+
+    ``junction_clearance(points, their edges)``: the heights needed over the junctions under
+    them (:func:`_deck_junction_clearance`). A deck that rises over a road rises over those
+    too where it can (else as before, over the roads alone): left at its line there, and so
+    neither over a junction by a car's height nor at grade with it, Monaco's Boulevard du
+    Larvotto (503783368, risen over a road 40 m on) ran 1.35 m over Rond-Point du Portier's
+    junction 1736937871, and a car on the junction drove into its edge."""
     pd = deck[rg]
     layer_e = np.array([e.layer for e in edges], dtype=np.int64)
     layer = layer_e[ref_e]
+
+    def envelope(i, nc, sc):
+        """The deck's heights ``rz[i]`` risen to needs ``nc`` at ``sc``; None if it cannot."""
+        # (from its ends, which stay, at DECK_MAX_GRADE at most: where a deck cannot rise
+        # enough over every road under it, it stays, and they cross at its height, conformed)
+        cap = np.minimum(rz[i[0]] + DECK_MAX_GRADE * rs[i], rz[i[-1]] + DECK_MAX_GRADE * (rs[i[-1]] - rs[i]))
+        if np.any(nc > np.interp(sc, rs[i], cap) + 1e-6):
+            return None         # (partly raised, it would stand lower than a car over a road)
+        env = np.max(nc[None, :] - DECK_GRADE * np.abs(rs[i][:, None] - sc[None, :]), axis=1)
+        # (no dips between the points that need it: over a road running under it at a
+        # slant, sampled every few metres, the cones alone left waves, 0.29 m deep on
+        # Kouvola's motorway bridge 39653008#1; one threw a car at 19 m/s off a bridge)
+        o = np.argsort(sc)
+        inside = (rs[i] >= sc[o[0]]) & (rs[i] <= sc[o[-1]])
+        env[inside] = np.maximum(env[inside], np.interp(rs[i][inside], sc[o], nc[o]))
+        return np.maximum(rz[i], np.minimum(env, cap))
+
     for L in np.unique(layer[deck]):
         idx = np.flatnonzero(pd & (layer[rg] == L))
         need = clearance(idx, ref_e[rg[idx]], ~edge_deck | (layer_e < L))
-        for g in np.unique(rg[idx[np.isfinite(need)]]):
+        jneed = np.full(len(idx), np.nan)
+        if junction_clearance is not None:
+            jneed = junction_clearance(idx, ref_e[rg[idx]])
+        for g in np.unique(rg[idx[np.isfinite(need) | np.isfinite(jneed)]]):
             i = np.arange(np.searchsorted(rg, g), np.searchsorted(rg, g, side="right"))     # (its points)
-            # (from its ends, which stay, at DECK_MAX_GRADE at most: where a deck cannot rise
-            # enough over every road under it, it stays, and they cross at its height, conformed)
-            cap = np.minimum(rz[i[0]] + DECK_MAX_GRADE * rs[i], rz[i[-1]] + DECK_MAX_GRADE * (rs[i[-1]] - rs[i]))
-            c = (rg[idx] == g) & np.isfinite(need)
-            nc, sc = need[c], rs[idx[c]]
-            if np.any(nc > np.interp(sc, rs[i], cap) + 1e-6):
-                continue        # (partly raised, it would stand lower than a car over a road)
-            env = np.max(nc[None, :] - DECK_GRADE * np.abs(rs[i][:, None] - sc[None, :]), axis=1)
-            # (no dips between the points that need it: over a road running under it at a
-            # slant, sampled every few metres, the cones alone left waves, 0.29 m deep on
-            # Kouvola's motorway bridge 39653008#1; one threw a car at 19 m/s off a bridge)
-            o = np.argsort(sc)
-            inside = (rs[i] >= sc[o[0]]) & (rs[i] <= sc[o[-1]])
-            env[inside] = np.maximum(env[inside], np.interp(rs[i][inside], sc[o], nc[o]))
-            rz[i] = np.maximum(rz[i], np.minimum(env, cap))
+            mine = rg[idx] == g
+            z = None
+            if np.isfinite(jneed[mine]).any():
+                both = np.fmax(need, jneed)
+                c = mine & np.isfinite(both)
+                z = envelope(i, both[c], rs[idx[c]])
+            if z is None and np.isfinite(need[mine]).any():
+                c = mine & np.isfinite(need)
+                z = envelope(i, need[c], rs[idx[c]])
+            if z is not None:
+                rz[i] = z
+
+
+def _deck_junction_clearance(RP, idx, own_e, hw, rz, planes, jids, jpolys, edges, deck_nodes) -> np.ndarray:
+    """For :func:`_raise_decks`: for the deck's profile points ``idx`` (of edges ``own_e``,
+    half widths ``hw`` per point), the height the deck must reach over the junctions under
+    them: :data:`DECK_CLEARANCE_M` over the junction's plane (``planes``) where the point's
+    cross-section reaches into its polygon (``jpolys``, of nodes ``jids``), the deck stands
+    more than 0.3 m over it (at grade nearer, :func:`_decks_onto_junctions`) and less than
+    the clearance. Not the junctions of the deck's own nodes, nor of any node a deck meets
+    (``deck_nodes``: a bridge's own junctions along it). NaN where none."""
+    need = np.full(len(idx), np.nan)
+    if not len(idx) or not len(jids):
+        return need
+    pts = shapely.points(RP[idx])
+    qi, ji = shapely.STRtree(jpolys).query(pts, predicate="dwithin", distance=float(hw.max()))
+    if not len(qi):
+        return need
+    ok = shapely.distance(pts[qi], jpolys[ji]) <= hw[qi]
+    qi, ji = qi[ok], ji[ok]
+    nodes = [jids[j] for j in ji.tolist()]
+    ok = np.array([j not in deck_nodes and j not in (edges[int(e)].from_node, edges[int(e)].to_node)
+                   for j, e in zip(nodes, own_e[qi].tolist())], dtype=bool)
+    qi, ji = qi[ok], ji[ok]
+    if not len(qi):
+        return need
+    P = np.array([planes[jids[j]] for j in ji.tolist()])
+    Q = RP[idx[qi]]
+    zj = P[:, 2] + P[:, 3] * (Q[:, 0] - P[:, 0]) + P[:, 4] * (Q[:, 1] - P[:, 1])
+    gap = rz[idx[qi]] - zj
+    ok = (gap > 0.3) & (gap < DECK_CLEARANCE_M)
+    top = np.full(len(idx), -np.inf)
+    np.maximum.at(top, qi[ok], zj[ok] + DECK_CLEARANCE_M)
+    return np.where(np.isfinite(top), top, np.nan)
 
 
 def _stack_under_higher_layers(edges, lanes, lane_edge, higher, ref_e, group_of, opposite_profile,
@@ -1901,8 +1965,13 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     at_grade: dict = {}
     if deck.any():
         before = rz.copy()
+        deck_nodes = {n for e, d in zip(edges, edge_deck) if d for n in (e.from_node, e.to_node)}
+        jids = [j for j in jrings if j in planes]
+        jpolys = _repaired_polygons([jrings[j] for j in jids])
         _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, lambda idx, own_e, under_e: _deck_clearance(
-            RP, idx, own_e, edge_hw[own_e], under_e, higher, lane_edge, onto_profile, core_tree))
+            RP, idx, own_e, edge_hw[own_e], under_e, higher, lane_edge, onto_profile, core_tree),
+            lambda idx, own_e: _deck_junction_clearance(RP, idx, own_e, edge_hw[own_e], rz, planes, jids, jpolys,
+                                                        edges, deck_nodes))
         # a deck that stayed down over a junction of other roads is at grade there: on its
         # plane, and the roads conformed under it follow it
         raised = np.bincount(rg, np.abs(rz - before) > 1e-9, len(ref_e)) > 0
@@ -2220,6 +2289,12 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
         miss = ~np.isfinite(vz)
         if miss.any():
             vz[miss] = zfun_at(v[miss, :2], gap_j, np.repeat(gg, 2)[miss])
+            # (and where they lie on a road's vehicle lane, that lane's height: a turn cut
+            # across the last metres of a steep Monaco street's lane (161882802_2) from the
+            # junction's lane ends stood 0.65 m over it, and a car on the street ran into it.
+            # Not a lane further apart: a corner lifted 1.46 m onto one (182700005_1, at 21 %
+            # into its junction) made a spike on the turn)
+            _onto_vehicle_lanes(v[:, :2], vz, miss, higher[0], core_tree, C, cg, cz, max_apart=GAP_ONTO_LANE_MAX_M)
         v[:, 2] = vz
         gz = 0.5 * (vz[0::2] + vz[1::2])
         n = len(gap_lanes)
@@ -2541,12 +2616,12 @@ def _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_ed
     return seg_keep, pt_keep
 
 
-def _onto_vehicle_lanes(xy, z, sel, veh, core_tree, C, cg, cz) -> int:
+def _onto_vehicle_lanes(xy, z, sel, veh, core_tree, C, cg, cz, max_apart: float = CONFORM_MAX_M) -> int:
     """Heights ``z`` (in place) of the points ``xy[sel]`` (of the junctions and walking areas
     of nodes only paths meet) that lie on a vehicle lane ``veh[k]`` (within
     :data:`SIDEWALK_INTRUSION_M` of its strip in ``core_tree``, :func:`_higher_roads`', which is
-    that much narrower either side) and within
-    :data:`CONFORM_MAX_M` of its height: that lane's height where they project onto its
+    that much narrower either side) and within ``max_apart``
+    (:data:`CONFORM_MAX_M`) of its height: that lane's height where they project onto its
     centreline (``C``, ``cg``, ``cz``). A footway's dead end mapped on a Monaco street (node 8258594205) took its height
     from the footways' ends, and its junction and walking area stood 0.13-0.27 m over the
     street's two lanes: a car at 8 m/s ran into the edge and stood. Their triangles on the
@@ -2562,7 +2637,7 @@ def _onto_vehicle_lanes(xy, z, sel, veh, core_tree, C, cg, cz) -> int:
     pi, first = np.unique(pi, return_index=True)         # (one lane per point)
     li = li[first]
     zl, _ = _onto_profiles(C, cg, cz, xy[idx[pi]], veh[li])
-    ok = np.isfinite(zl) & (np.abs(zl - z[idx[pi]]) <= CONFORM_MAX_M)
+    ok = np.isfinite(zl) & (np.abs(zl - z[idx[pi]]) <= max_apart)
     z[idx[pi[ok]]] = zl[ok]
     return int(ok.sum())
 

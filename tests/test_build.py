@@ -445,6 +445,8 @@ def test_monaco_with_srtm(tmp_path):
     _check_junctions_do_not_fold(out, w)
     _check_junctions_meet_each_other(out, w)
     _check_turns_have_road(out, w)
+    assert _check_turns_meet_the_lanes_they_cross(out, w) > 50
+    assert _check_decks_clear_junctions_or_meet_them(out, w) > 20
     _check_tunnels_not_meshed(out, w)
     assert _check_edges_on_one_level(out, w, osm) > 100
     _check_lanes_not_steeper_than_streets(out, w)
@@ -795,6 +797,82 @@ def _check_turns_have_road(out: Path, w: dict):
     curb = np.where(inside & mine, _top_surface_z(D, walks) - top_a, np.nan)
     bad = np.flatnonzero((curb > 0.10) & (curb < 1.5))
     assert len(bad) == 0, [(lanes[dg[k]].id, round(float(curb[k]), 2)) for k in bad[:10]]
+
+
+def _check_turns_meet_the_lanes_they_cross(out: Path, w: dict) -> int:
+    """Where a turn's own strip (a junction lane that leaves its junction's polygon) lies on a
+    road's vehicle lane, within GAP_ONTO_LANE_MAX_M of its height, and no junction surface is
+    there, the two are level (within 0.15 m).
+    netconvert cut a turn across the last metres of a steep Monaco street's lane
+    (:cluster_25193390_6444966511_4_0 over 161882802_2); heights blended from the junction's
+    lane ends put it 0.65 m over the lane, and a car on the street ran into it. Returns how
+    many strip corners were compared."""
+    import types
+
+    from netgen.roads import GAP_ONTO_LANE_MAX_M, _top_surface_z
+
+    def parts(element):
+        return [types.SimpleNamespace(vertices=np.asarray(g.vertices), faces=np.asarray(g.faces))
+                for _, g in _tile_meshes(out, "asphalt", element)]
+
+    net = read_net(out / w["net_file"])
+    car = {ln.id for e in net.edges.values() if e.function == "normal" for ln in e.lanes if ln.drivable}
+    turns = list(_tile_meshes(out, "asphalt", "junction_lane/"))
+    assert len(turns) > 20
+    V = np.vstack([np.asarray(g.vertices) for _, g in turns])
+    lanes = [types.SimpleNamespace(vertices=np.asarray(g.vertices), faces=np.asarray(g.faces))
+             for name, g in _tile_meshes(out, "asphalt", "lane/") if name.split("/", 1)[1] in car]
+    hi, lo = _top_surface_z(V[:, :2], lanes), _top_surface_z(V[:, :2], lanes, lowest=True)
+    lane_z = np.where(np.abs(hi - V[:, 2]) <= np.abs(lo - V[:, 2]), hi, lo)
+    on_junction = np.isfinite(_top_surface_z(V[:, :2], parts("junction/")))
+    dz = np.abs(lane_z - V[:, 2])
+    on = np.isfinite(dz) & (dz <= GAP_ONTO_LANE_MAX_M) & ~on_junction
+    bad = np.flatnonzero(on & (dz > 0.15))
+    assert not len(bad), [(tuple(np.round(V[k], 1)), round(float(dz[k]), 2)) for k in bad[:8]]
+    return int(on.sum())
+
+
+def _check_decks_clear_junctions_or_meet_them(out: Path, w: dict) -> int:
+    """A bridge's vehicle lane over the junction of a node it does not meet is at grade with
+    it (within 0.3 m) or clears it (by 2.5 m or more, room for a car): Monaco's Boulevard du
+    Larvotto (503783368), a deck risen over a road further on, ran 1.35 m over Rond-Point du
+    Portier's junction 1736937871, and a car on the junction drove into its edge. Returns how
+    many deck points over such junctions were compared."""
+    import types
+
+    import shapely
+
+    from netgen.roads import _top_surface_z, resample_many
+
+    net = read_net(out / w["net_file"])
+    decks = {ln.id: e for e in net.edges.values() if e.function == "normal" and getattr(e, "bridge", False)
+             and not getattr(e, "tunnel", False) for ln in e.lanes if ln.drivable and len(ln.shape) >= 2}
+    jparts, lparts = {}, {}
+    for name, g in _tile_meshes(out, "asphalt", ""):
+        kind, _, key = name.partition("/")
+        part = types.SimpleNamespace(vertices=np.asarray(g.vertices), faces=np.asarray(g.faces))
+        if kind == "junction":
+            jparts.setdefault(key, []).append(part)
+        elif kind == "lane" and key in decks:
+            lparts.setdefault(key, []).append(part)
+    jids = [j for j in jparts if j in net.junctions and net.junctions[j].shape is not None
+            and len(net.junctions[j].shape) >= 3]
+    tree = shapely.STRtree([shapely.make_valid(shapely.Polygon(net.junctions[j].shape[:, :2])) for j in jids])
+    gaps, where = [], []
+    for lane_id, e in decks.items():
+        if lane_id not in lparts:
+            continue
+        ln = next(ln for ln in e.lanes if ln.id == lane_id)
+        P, _ = resample_many(ln.shape[:, :2], np.zeros(len(ln.shape), dtype=np.int64), 2.0)
+        zd = _top_surface_z(P, lparts[lane_id])
+        for q, j in zip(*tree.query(shapely.points(P), predicate="within")):
+            if jids[j] not in (e.from_node, e.to_node):
+                gaps.append(zd[q] - _top_surface_z(P[q:q + 1], jparts[jids[j]])[0])
+                where.append((lane_id, jids[j]))
+    gaps = np.array(gaps)
+    bad = np.flatnonzero((gaps > 0.3) & (gaps < 2.5))
+    assert not len(bad), sorted({(where[k], round(float(gaps[k]), 2)) for k in bad})[:8]
+    return int(np.isfinite(gaps).sum())
 
 
 def _asphalt_parts(out: Path) -> list:
