@@ -247,6 +247,13 @@ class Simulation:
             x, y, yaw, lane, pos, plan = self._face_the_way(*self._snap_start())
             self.physics.update(x, y, self.keep_radius, budget_ms=1e9)
             z = float(self.world.ground_z(x, y)[0])
+            if lane in self.world.bridge_lanes():
+                # (on a bridge: on its deck, not on the ground under it; Portland, a start on the
+                # Hawthorne Bridge's lane -282174242#0_0 put the car on the river 8 m below, and
+                # it drove into the bank)
+                top = float(self.world.road_top_z(np.array([x]), np.array([y]))[0])
+                if np.isfinite(top) and top > z + 0.5:
+                    z = top
             self.vehicle = EgoVehicle(self.physics.client, position=(x, y, z + 0.05), yaw=yaw)
             self.vehicle.place_on_ground(x, y, yaw, z)      # on the road surface, tilted with it
             self.mirror = ActorMirror(self.physics.client, self.world, visuals=cfg.gui or cfg.render)

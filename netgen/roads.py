@@ -105,7 +105,12 @@ DECK_CLEAR_M = 0.5
 #: a deck is this far above a vehicle lane that passes under it (a clearance of 4.5 m and the
 #: deck), rising to it at DECK_GRADE
 DECK_CLEARANCE_M = 5.0
+#: a deck that cannot rise to DECK_CLEARANCE_M over the roads under it but to this much less
+#: (m) rises as far as it can: 4.1 m under its underside still lets a lorry pass (_raise_decks)
+DECK_CLEARANCE_SLACK_M = 0.5
 DECK_THICKNESS_M = 0.4          # (its underside, drawn only)
+#: a deck this far over a road (m) lets a car pass under it (_lift_viaducts)
+DECK_PASSABLE_M = 2.5
 #: a deck's lanes that stand at most this far over the lanes of a road they cross (nowhere
 #: further: not a bridge over it) come down onto them (build_roads)
 DECK_DOWN_MAX_M = 0.5
@@ -880,21 +885,8 @@ def _bridge_decks(edges, ref_e, rg, rs, rtot, rz, deck) -> None:
     n = len(ref_e)
     if not deck.any():
         return
-    first = np.r_[0, np.nonzero(rg[1:] != rg[:-1])[0] + 1]
-    last = np.r_[first[1:] - 1, len(rg) - 1]
-    num: dict = {}
-    fn = np.array([num.setdefault(edges[int(e)].from_node, len(num)) for e in ref_e], dtype=np.int64)
-    tn = np.array([num.setdefault(edges[int(e)].to_node, len(num)) for e in ref_e], dtype=np.int64)
+    num, fn, tn, ground, abut, on = _deck_nodes(edges, ref_e, rg, rz, deck)
     m = len(num)
-    drv = np.array([edges[int(e)].drivable for e in ref_e], dtype=bool)
-    ends = np.concatenate([fn, tn])
-    at = lambda mask: np.bincount(ends, np.tile(mask, 2).astype(float), m) > 0      # noqa: E731
-    ground = np.bincount(ends, rz[np.concatenate([first, last])], m) / np.maximum(np.bincount(ends, minlength=m), 1)
-    # (a bridge's end where nothing else meets it: one neighbour along decks, "X" and "-X" one)
-    nb = np.unique(np.column_stack([np.r_[fn[deck], tn[deck]], np.r_[tn[deck], fn[deck]]]), axis=0)
-    degree = np.bincount(nb[:, 0], minlength=m)
-    abut = at(~deck & drv) | (~at(deck & drv) & at(~deck)) | (degree == 1)
-    on = at(deck) & ~abut                           # nodes along a bridge: unknown
     h = ground.copy()
     if on.any():
         # each unknown node: sum over its deck profiles of w (h - h_other) = 0, w = 1 / length
@@ -930,6 +922,140 @@ def _bridge_decks(edges, ref_e, rg, rs, rtot, rz, deck) -> None:
     rz[pd] = (z0 + u * (z1 - z0))[pd]
 
 
+def _deck_nodes(edges, ref_e, rg, rz, deck) -> tuple:
+    """The nodes of the profiles (``ref_e``: their edges; ``rg``, ``rz``; ``deck``: which are
+    a bridge's deck): their numbers (node id -> number), each profile's from and to node, each
+    node's mean height of the profile ends there, and which nodes are a bridge's abutment (a
+    road that is no bridge meets it there, a drivable one where the deck is drivable, so that
+    steps down from a bridge are not abutments; or the bridge ends there) and which lie along
+    a bridge (every other node a deck meets)."""
+    first = np.r_[0, np.nonzero(rg[1:] != rg[:-1])[0] + 1]
+    last = np.r_[first[1:] - 1, len(rg) - 1]
+    num: dict = {}
+    fn = np.array([num.setdefault(edges[int(e)].from_node, len(num)) for e in ref_e], dtype=np.int64)
+    tn = np.array([num.setdefault(edges[int(e)].to_node, len(num)) for e in ref_e], dtype=np.int64)
+    m = len(num)
+    drv = np.array([edges[int(e)].drivable for e in ref_e], dtype=bool)
+    ends = np.concatenate([fn, tn])
+    at = lambda mask: np.bincount(ends, np.tile(mask, 2).astype(float), m) > 0      # noqa: E731
+    ground = np.bincount(ends, rz[np.concatenate([first, last])], m) / np.maximum(np.bincount(ends, minlength=m), 1)
+    # (a bridge's end where nothing else meets it: one neighbour along decks, "X" and "-X" one)
+    nb = np.unique(np.column_stack([np.r_[fn[deck], tn[deck]], np.r_[tn[deck], fn[deck]]]), axis=0)
+    degree = np.bincount(nb[:, 0], minlength=m)
+    abut = at(~deck & drv) | (~at(deck & drv) & at(~deck)) | (degree == 1)
+    on = at(deck) & ~abut
+    return num, fn, tn, ground, abut, on
+
+
+#: a node along a bridge is lifted at most this many times (_lift_viaducts)
+VIADUCT_LIFT_ROUNDS = 4
+
+
+def _lift_viaducts(edges, ref_e, rg, rs, rtot, rz, deck, planes, clearance, keep=frozenset()) -> int:
+    """The nodes along bridges (:func:`_deck_nodes`) lifted where a deck that ends there must
+    reach ``clearance(points)`` (the heights over the roads and junctions under its profile
+    points, :func:`_deck_clearance`, NaN where none; and how far over them the deck comes down
+    onto them later) higher than :data:`DECK_MAX_GRADE` from its
+    ends allows, for :func:`_raise_decks`: the nearer of its ends that lies along a bridge
+    rises just enough, but no higher than that grade allows from the abutments along the
+    decks (a shortest path); every profile ending there follows linearly along its length,
+    and the node's plane (``planes``) with it (``rz``, ``planes`` in place). A node along a
+    bridge lay where the mean of its neighbours and the junction planes put it: Portland's
+    viaducts east of the Morrison Bridge stayed near the ground between abutments on both
+    sides of I-5, so their decks could not rise over it: one crossed the freeway at grade,
+    another 1.3 m over it, and cars ran into both. Nodes in ``keep`` stay (a deck's end on
+    another node's junction: lifted, Portland's 34089106#0 began 0.9 m over the junction of
+    the street beside its node). Returns how many nodes rose."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import dijkstra
+
+    num, fn, tn, h, abut, on = _deck_nodes(edges, ref_e, rg, rz, deck)
+    m = len(num)
+    on = on & ~np.isin(np.arange(m), [num[j] for j in keep if j in num])
+    src = np.flatnonzero(abut & np.isfinite(h) & (np.bincount(np.r_[fn[deck], tn[deck]], minlength=m) > 0))
+    if not on.any() or not len(src):
+        return 0
+    dk = np.flatnonzero(deck)
+    a, b, length = fn[dk], tn[dk], rtot[dk]
+    # the highest each node may stand: from the abutments along the decks at DECK_MAX_GRADE
+    # (a source joined to each abutment by the rise from the lowest one)
+    base = float(np.min(h[src]))
+    w = np.r_[length, length, (h[src] - base) / DECK_MAX_GRADE]
+    graph = sp.csr_matrix((np.maximum(w, 1e-9), (np.r_[a, b, np.full(len(src), m)], np.r_[b, a, src])),
+                          shape=(m + 1, m + 1))
+    top = base + DECK_MAX_GRADE * dijkstra(graph, indices=m)[:m]
+    prof = np.full(len(ref_e), -1, dtype=np.int64)
+    prof[dk] = np.arange(len(dk))
+    pts = np.flatnonzero(deck[rg])
+    u = rs / np.maximum(rtot[rg], 1e-9)
+    h0 = h.copy()
+    for _ in range(VIADUCT_LIFT_ROUNDS):
+        need, down = clearance(pts)
+        sel = np.isfinite(need)
+        if not sel.any():
+            break
+        p, nd, down = pts[sel], need[sel], down[sel]
+        k = prof[rg[p]]
+        sa, sb = rs[p], length[k] - rs[p]
+        cap = np.minimum(h[a[k]] + DECK_MAX_GRADE * sa, h[b[k]] + DECK_MAX_GRADE * sb)
+        short = nd > cap + 1e-6       # (lifted to the full clearance where it can)
+        if not short.any():
+            break
+        use_a = short & on[a[k]] & ((sa <= sb) | ~on[b[k]])          # (the nearer end along a bridge)
+        use_b = short & ~use_a & on[b[k]]
+        lift = h.copy()
+        np.maximum.at(lift, a[k][use_a], (nd - DECK_MAX_GRADE * sa)[use_a])
+        np.maximum.at(lift, b[k][use_b], (nd - DECK_MAX_GRADE * sb)[use_b])
+        new = np.where(on, np.maximum(h, np.minimum(lift, top)), h)
+        # (not where a deck that cannot clear a road would rise to stand in a car's way over
+        # it: higher than it comes down onto it from, lower than DECK_PASSABLE_M; Portland's
+        # ramp 30260391, at grade with the street it crosses 10 m from its foot, rose to 1.2 m
+        # over it)
+        f = sa / np.maximum(length[k], 1e-9)
+        road = nd - DECK_CLEARANCE_M
+
+        def in_way(z):
+            return (z > road + down) & (z < road + DECK_PASSABLE_M)
+
+        was = in_way(h[a[k]] * (1.0 - f) + h[b[k]] * f)
+        for _ in range(len(dk)):
+            cap2 = np.minimum(new[a[k]] + DECK_MAX_GRADE * sa, new[b[k]] + DECK_MAX_GRADE * sb)
+            worse = (nd > cap2 + DECK_CLEARANCE_SLACK_M) & in_way(new[a[k]] * (1.0 - f) + new[b[k]] * f) & ~was
+            if not worse.any():
+                break
+            back = np.unique(np.r_[a[k][worse], b[k][worse]])
+            new[back] = h[back]
+        if not np.any(new > h + 1e-3):
+            break
+        d = new - h
+        rz += d[fn][rg] * (1.0 - u) + d[tn][rg] * u        # (every profile that ends there)
+        h = new
+    rose = np.flatnonzero(h > h0 + 1e-3)
+    for node, k in num.items():
+        if h[k] > h0[k] + 1e-3 and node in planes:
+            x0, y0, z0, gx, gy = planes[node]
+            planes[node] = (x0, y0, z0 + float(h[k] - h0[k]), gx, gy)
+    return len(rose)
+
+
+def _deck_ends_on_other_junctions(edges, ref_e, RP, rg, deck, edge_hw, jids, jpolys) -> set:
+    """The nodes where a deck's profile (``deck``) ends within its half width (``edge_hw``)
+    of the polygon (``jpolys``) of another node's junction (``jids``)."""
+    first = np.r_[0, np.nonzero(rg[1:] != rg[:-1])[0] + 1]
+    last = np.r_[first[1:] - 1, len(rg) - 1]
+    ends = np.r_[first, last]
+    node = np.array([edges[int(e)].from_node for e in ref_e] + [edges[int(e)].to_node for e in ref_e], dtype=object)
+    sel = np.flatnonzero(deck[rg[ends]])
+    ends, node = ends[sel], node[sel]
+    if not len(ends) or not len(jids):
+        return set()
+    hw = edge_hw[ref_e[rg[ends]]]
+    pts = shapely.points(RP[ends])
+    qi, ji = shapely.STRtree(jpolys).query(pts, predicate="dwithin", distance=float(hw.max()))
+    near = shapely.distance(jpolys[ji], pts[qi]) <= hw[qi]
+    return {node[q] for q, j in zip(qi[near].tolist(), ji[near].tolist()) if jids[j] != node[q]}
+
+
 def _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, clearance, junction_clearance=None) -> None:
     """Lowest OSM layer first, where a road passes under a deck (:func:`_bridge_decks`;
     ``clearance(points, their edges, under-edge mask)``: the heights needed there,
@@ -956,7 +1082,7 @@ def _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, clearance, junction_
         # (from its ends, which stay, at DECK_MAX_GRADE at most: where a deck cannot rise
         # enough over every road under it, it stays, and they cross at its height, conformed)
         cap = np.minimum(rz[i[0]] + DECK_MAX_GRADE * rs[i], rz[i[-1]] + DECK_MAX_GRADE * (rs[i[-1]] - rs[i]))
-        if np.any(nc > np.interp(sc, rs[i], cap) + 1e-6):
+        if np.any(nc > np.interp(sc, rs[i], cap) + DECK_CLEARANCE_SLACK_M):
             return None         # (partly raised, it would stand lower than a car over a road)
         env = np.max(nc[None, :] - DECK_GRADE * np.abs(rs[i][:, None] - sc[None, :]), axis=1)
         # (no dips between the points that need it: over a road running under it at a
@@ -988,13 +1114,14 @@ def _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, clearance, junction_
                 rz[i] = z
 
 
-def _deck_junction_clearance(RP, idx, own_e, hw, rz, planes, jids, jpolys, edges, deck_nodes) -> np.ndarray:
+def _deck_junction_clearance(RP, idx, own_e, hw, rz, planes, jids, jpolys, edges, deck_nodes,
+                             min_gap: float = 0.3) -> np.ndarray:
     """For :func:`_raise_decks`: for the deck's profile points ``idx`` (of edges ``own_e``,
     half widths ``hw`` per point), the height the deck must reach over the junctions under
     them: :data:`DECK_CLEARANCE_M` over the junction's plane (``planes``) where the point's
     cross-section reaches into its polygon (``jpolys``, of nodes ``jids``), the deck stands
-    more than 0.3 m over it (at grade nearer, :func:`_decks_onto_junctions`) and less than
-    the clearance. Not the junctions of the deck's own nodes, nor of any node a deck meets
+    more than ``min_gap`` over it (at grade nearer, :func:`_decks_onto_junctions`) and less
+    than the clearance. Not the junctions of the deck's own nodes, nor of any node a deck meets
     (``deck_nodes``: a bridge's own junctions along it). NaN where none."""
     need = np.full(len(idx), np.nan)
     if not len(idx) or not len(jids):
@@ -1015,7 +1142,7 @@ def _deck_junction_clearance(RP, idx, own_e, hw, rz, planes, jids, jpolys, edges
     Q = RP[idx[qi]]
     zj = P[:, 2] + P[:, 3] * (Q[:, 0] - P[:, 0]) + P[:, 4] * (Q[:, 1] - P[:, 1])
     gap = rz[idx[qi]] - zj
-    ok = (gap > 0.3) & (gap < DECK_CLEARANCE_M)
+    ok = (gap > min_gap) & (gap < DECK_CLEARANCE_M)
     top = np.full(len(idx), -np.inf)
     np.maximum.at(top, qi[ok], zj[ok] + DECK_CLEARANCE_M)
     return np.where(np.isfinite(top), top, np.nan)
@@ -1964,10 +2091,26 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     geo.stacked_over = stacked
     at_grade: dict = {}
     if deck.any():
-        before = rz.copy()
         deck_nodes = {n for e, d in zip(edges, edge_deck) if d for n in (e.from_node, e.to_node)}
         jids = [j for j in jrings if j in planes]
         jpolys = _repaired_polygons([jrings[j] for j in jids])
+        # (the roads under the decks, and the junctions at grade with them too: a deck's node
+        # lifted for one road did not take another deck of it up over a junction it crossed at
+        # grade, to stand 1.5-1.9 m over it)
+        def lift_need(idx):
+            own_e = ref_e[rg[idx]]
+            road = _deck_clearance(RP, idx, own_e, edge_hw[own_e], ~edge_deck, higher, lane_edge, onto_profile,
+                                   core_tree)
+            junction = _deck_junction_clearance(RP, idx, own_e, edge_hw[own_e], rz, planes, jids, jpolys, edges,
+                                                deck_nodes, min_gap=-CONFORM_MAX_M)
+            # (and how far over it a deck comes down onto it later: _decks_onto_junctions, the
+            # deck's lanes onto a road's)
+            return np.fmax(road, junction), np.where(junction >= np.nan_to_num(road, nan=-np.inf), CONFORM_MAX_M,
+                                                     DECK_DOWN_MAX_M)
+
+        _lift_viaducts(edges, ref_e, rg, rs, rtot, rz, deck, planes, lift_need,
+                       keep=_deck_ends_on_other_junctions(edges, ref_e, RP, rg, deck, edge_hw, jids, jpolys))
+        before = rz.copy()
         _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, lambda idx, own_e, under_e: _deck_clearance(
             RP, idx, own_e, edge_hw[own_e], under_e, higher, lane_edge, onto_profile, core_tree),
             lambda idx, own_e: _deck_junction_clearance(RP, idx, own_e, edge_hw[own_e], rz, planes, jids, jpolys,

@@ -1514,6 +1514,8 @@ def test_a_bridge_over_a_road_clears_it_or_meets_it(tmp_path):
 
 
 def test_portland_with_geotiff_and_voids(tmp_path):
+    from netgen.roads import DECK_CLEARANCE_M, DECK_CLEARANCE_SLACK_M
+
     osm = shared_file("osm/portland-central-2015.osm.pbf")
     dem = shared_file("dem/portland-ned.tif")
     w = _dem_world(tmp_path / "a", osm, dem, (45.5152, -122.6784), spacing=2.5)   # NED is 10 m itself
@@ -1527,6 +1529,16 @@ def test_portland_with_geotiff_and_voids(tmp_path):
     # since netgen 0.1.33: 127586088#2 runs through junction 40391341's polygon 25 m from the
     # world's east edge, and the junction's plane, now from the DEM's ground beyond the edge
     # (the grid's border before), puts it 0.18 m under the lane where it stood 0.09 m over it
+    # east of the Morrison Bridge, its viaducts' nodes stood where the mean of their
+    # neighbours put them, near the ground between abutments on both sides of I-5: the deck
+    # 220079187#0 could not rise over the Eastbank Freeway (123689396#0) and crossed it at
+    # grade, its side 0.17 m over the freeway's lane, and a car at 10 m/s stopped dead there.
+    # Its node along the viaduct rises now, and the deck clears the freeway
+    _dem_world(tmp_path / "m", osm, dem, (45.51693, -122.66706))
+    decks = list(_tile_meshes(tmp_path / "m" / "w", "asphalt", "lane/220079187#0_"))
+    free = list(_tile_meshes(tmp_path / "m" / "w", "asphalt", "lane/123689396#0_"))
+    gaps = np.concatenate(list(_surface_gaps(decks, free).values()))
+    assert len(gaps) > 200 and gaps.min() > DECK_CLEARANCE_M - DECK_CLEARANCE_SLACK_M, (len(gaps), gaps.min())
     over = _lane_points_under_another_road(tmp_path / "a" / "w", w)
     assert len(over) > 20000 and (over > 0.1).sum() < 75, (len(over), (over > 0.1).sum())
     # the road heights register: every node's plane, beyond the extent's edge too, but not the

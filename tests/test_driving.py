@@ -2224,6 +2224,35 @@ def test_a_car_on_a_bridge_is_mirrored_on_its_deck_not_on_the_ground(monaco):
         sim.teardown()
 
 
+def test_a_car_that_starts_on_a_bridge_starts_on_its_deck(monaco):
+    """The car starting on a bridge's lane stands on the deck, not on the ground under it
+    (Portland: a start on the Hawthorne Bridge's lane -282174242#0_0 put the car on the river
+    8 m below, and it drove along the water into the bank)."""
+    sim = start_sim(monaco)
+    try:
+        lane = "503783368_0"
+        P = np.array(sim.traffic.sumo.lane.getShape(lane))[:, :2]
+        d = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(P, axis=0).T))])
+        ss = np.arange(0.0, d[-1], 2.0)
+        X, Y = np.interp(ss, d, P[:, 0]), np.interp(ss, d, P[:, 1])
+        rise = sim.world.road_top_z(X, Y) - sim.world.ground_z(X, Y)
+        # (a point high over the ground where the start snaps onto the deck's lane)
+        k = next(k for k in np.argsort(-np.nan_to_num(rise)).tolist() if sim.traffic.snap_lane(X[k], Y[k])[0] == lane)
+        assert rise[k] > 3.0
+        lon, lat = sim.world.frame.to_lonlat(X[k], Y[k])
+    finally:
+        sim.teardown()
+    sim = start_sim(monaco, start=(float(lat), float(lon)), duration_s=2.0)
+    try:
+        st = sim.vehicle.state()
+        ground = float(sim.world.ground_z([st.x], [st.y])[0])
+        assert st.z > ground + 2.5, (st.z, ground)
+        sim.run()
+        assert sim.vehicle.state().z > ground + 2.5
+    finally:
+        sim.teardown()
+
+
 @pytest.fixture(scope="module")
 def portland_decks(tmp_path_factory):
     """Portland by I-405's ramps (the bench's centre): junctions on decks."""
