@@ -866,7 +866,7 @@ def _deck_clearance(RP, idx, own_e, hw, under_e, higher, lane_edge, onto_profile
     return np.where(np.isfinite(top), top, np.nan)
 
 
-def _bridge_decks(edges, ref_e, rg, rs, rtot, rz, deck) -> None:
+def _bridge_decks(edges, ref_e, rg, rs, rtot, rz, deck, nodes=None) -> None:
     """Bridges (OSM ``bridge=*``; ``deck``: the mask of the profiles that are one) as decks
     (``rz`` in place).
 
@@ -878,15 +878,16 @@ def _bridge_decks(edges, ref_e, rg, rs, rtot, rz, deck) -> None:
     a bridge are not abutments; or the bridge ends there) keep their height, those along the
     bridge (a ramp joining it, a bridge mapped in pieces) take the length-weighted mean of their
     neighbours' along it (solved for all at once). Where a road passes under it, it rises
-    later (:func:`_raise_decks`)."""
+    later (:func:`_raise_decks`). ``nodes``: :func:`_deck_nodes` (else worked out here)."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import spsolve
 
     n = len(ref_e)
     if not deck.any():
         return
-    num, fn, tn, ground, abut, on = _deck_nodes(edges, ref_e, rg, rz, deck)
+    num, fn, tn, abut, on = nodes if nodes is not None else _deck_nodes(edges, ref_e, deck)
     m = len(num)
+    ground = _node_heights(fn, tn, rg, rz, m)
     h = ground.copy()
     if on.any():
         # each unknown node: sum over its deck profiles of w (h - h_other) = 0, w = 1 / length
@@ -922,15 +923,12 @@ def _bridge_decks(edges, ref_e, rg, rs, rtot, rz, deck) -> None:
     rz[pd] = (z0 + u * (z1 - z0))[pd]
 
 
-def _deck_nodes(edges, ref_e, rg, rz, deck) -> tuple:
-    """The nodes of the profiles (``ref_e``: their edges; ``rg``, ``rz``; ``deck``: which are
-    a bridge's deck): their numbers (node id -> number), each profile's from and to node, each
-    node's mean height of the profile ends there, and which nodes are a bridge's abutment (a
-    road that is no bridge meets it there, a drivable one where the deck is drivable, so that
-    steps down from a bridge are not abutments; or the bridge ends there) and which lie along
-    a bridge (every other node a deck meets)."""
-    first = np.r_[0, np.nonzero(rg[1:] != rg[:-1])[0] + 1]
-    last = np.r_[first[1:] - 1, len(rg) - 1]
+def _deck_nodes(edges, ref_e, deck) -> tuple:
+    """The nodes of the profiles (``ref_e``: their edges; ``deck``: which are a bridge's
+    deck): their numbers (node id -> number), each profile's from and to node, and which
+    nodes are a bridge's abutment (a road that is no bridge meets it there, a drivable one
+    where the deck is drivable, so that steps down from a bridge are not abutments; or the
+    bridge ends there) and which lie along a bridge (every other node a deck meets)."""
     num: dict = {}
     fn = np.array([num.setdefault(edges[int(e)].from_node, len(num)) for e in ref_e], dtype=np.int64)
     tn = np.array([num.setdefault(edges[int(e)].to_node, len(num)) for e in ref_e], dtype=np.int64)
@@ -938,20 +936,28 @@ def _deck_nodes(edges, ref_e, rg, rz, deck) -> tuple:
     drv = np.array([edges[int(e)].drivable for e in ref_e], dtype=bool)
     ends = np.concatenate([fn, tn])
     at = lambda mask: np.bincount(ends, np.tile(mask, 2).astype(float), m) > 0      # noqa: E731
-    ground = np.bincount(ends, rz[np.concatenate([first, last])], m) / np.maximum(np.bincount(ends, minlength=m), 1)
     # (a bridge's end where nothing else meets it: one neighbour along decks, "X" and "-X" one)
     nb = np.unique(np.column_stack([np.r_[fn[deck], tn[deck]], np.r_[tn[deck], fn[deck]]]), axis=0)
     degree = np.bincount(nb[:, 0], minlength=m)
     abut = at(~deck & drv) | (~at(deck & drv) & at(~deck)) | (degree == 1)
     on = at(deck) & ~abut
-    return num, fn, tn, ground, abut, on
+    return num, fn, tn, abut, on
+
+
+def _node_heights(fn, tn, rg, rz, m) -> np.ndarray:
+    """Each of ``m`` nodes' mean height of the ends of the profiles (``rg``, ``rz``; from and
+    to nodes ``fn``, ``tn``) there."""
+    first = np.r_[0, np.nonzero(rg[1:] != rg[:-1])[0] + 1]
+    last = np.r_[first[1:] - 1, len(rg) - 1]
+    ends = np.concatenate([fn, tn])
+    return np.bincount(ends, rz[np.concatenate([first, last])], m) / np.maximum(np.bincount(ends, minlength=m), 1)
 
 
 #: a node along a bridge is lifted at most this many times (_lift_viaducts)
 VIADUCT_LIFT_ROUNDS = 4
 
 
-def _lift_viaducts(edges, ref_e, rg, rs, rtot, rz, deck, planes, clearance, keep=frozenset()) -> int:
+def _lift_viaducts(edges, ref_e, rg, rs, rtot, rz, deck, planes, clearance, keep=frozenset(), nodes=None) -> int:
     """The nodes along bridges (:func:`_deck_nodes`) lifted where a deck that ends there must
     reach ``clearance(points)`` (the heights over the roads and junctions under its profile
     points, :func:`_deck_clearance`, NaN where none; and how far over them the deck comes down
@@ -969,11 +975,14 @@ def _lift_viaducts(edges, ref_e, rg, rs, rtot, rz, deck, planes, clearance, keep
     import scipy.sparse as sp
     from scipy.sparse.csgraph import dijkstra
 
-    num, fn, tn, h, abut, on = _deck_nodes(edges, ref_e, rg, rz, deck)
+    num, fn, tn, abut, on = nodes if nodes is not None else _deck_nodes(edges, ref_e, deck)
     m = len(num)
     on = on & ~np.isin(np.arange(m), [num[j] for j in keep if j in num])
+    if not on.any():
+        return 0
+    h = _node_heights(fn, tn, rg, rz, m)
     src = np.flatnonzero(abut & np.isfinite(h) & (np.bincount(np.r_[fn[deck], tn[deck]], minlength=m) > 0))
-    if not on.any() or not len(src):
+    if not len(src):
         return 0
     dk = np.flatnonzero(deck)
     a, b, length = fn[dk], tn[dk], rtot[dk]
@@ -2069,7 +2078,8 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     # bridges' decks: straight between where they meet the ground, and clear of the roads under them
     edge_deck = higher[8]
     deck = edge_deck[ref_e]                                     # (per profile: a bridge's deck)
-    _bridge_decks(edges, ref_e, rg, rs, rtot, rz, deck)
+    deck_graph = _deck_nodes(edges, ref_e, deck) if deck.any() else None
+    _bridge_decks(edges, ref_e, rg, rs, rtot, rz, deck, nodes=deck_graph)
 
     # (roads with vehicle lanes: a footway's lanes on a road are left out, as sidewalks are)
     vehicle_edge = np.bincount(lane_edge[higher[0]], minlength=len(edges)) > 0
@@ -2092,7 +2102,12 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     at_grade: dict = {}
     if deck.any():
         deck_nodes = {n for e, d in zip(edges, edge_deck) if d for n in (e.from_node, e.to_node)}
+        # (the junctions near a deck's profile: those it may pass over)
         jids = [j for j in jrings if j in planes]
+        cen = np.array([jrings[j].mean(axis=0) for j in jids]).reshape(-1, 2)
+        rad = np.array([np.max(np.hypot(*(jrings[j] - c).T)) for j, c in zip(jids, cen)])
+        near, _ = cKDTree(RP[deck[rg]]).query(cen, k=1, workers=-1) if len(jids) else (np.zeros(0), None)
+        jids = [j for j, d, r in zip(jids, near, rad) if d <= r + float(edge_hw.max()) + 5.0]
         jpolys = _repaired_polygons([jrings[j] for j in jids])
         # (the roads under the decks, and the junctions at grade with them too: a deck's node
         # lifted for one road did not take another deck of it up over a junction it crossed at
@@ -2108,8 +2123,10 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
             return np.fmax(road, junction), np.where(junction >= np.nan_to_num(road, nan=-np.inf), CONFORM_MAX_M,
                                                      DECK_DOWN_MAX_M)
 
-        _lift_viaducts(edges, ref_e, rg, rs, rtot, rz, deck, planes, lift_need,
-                       keep=_deck_ends_on_other_junctions(edges, ref_e, RP, rg, deck, edge_hw, jids, jpolys))
+        if deck_graph[4].any():                 # (nodes along a bridge)
+            _lift_viaducts(edges, ref_e, rg, rs, rtot, rz, deck, planes, lift_need,
+                           keep=_deck_ends_on_other_junctions(edges, ref_e, RP, rg, deck, edge_hw, jids, jpolys),
+                           nodes=deck_graph)
         before = rz.copy()
         _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, lambda idx, own_e, under_e: _deck_clearance(
             RP, idx, own_e, edge_hw[own_e], under_e, higher, lane_edge, onto_profile, core_tree),
