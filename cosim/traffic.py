@@ -1918,7 +1918,8 @@ class SumoTraffic(Component):
         ``cosim.driving._drivable_nexts``, to an edge not yet on the way and not back onto the
         road's other direction): round to an edge on the way again where it loops, else to where
         it goes on no further and back by the last U-turn on the way (Lauf's Steyrer Straße,
-        23904724); None where the way has none for cars."""
+        23904724), or with none there, up to where it goes on no further; None where the way has
+        none for cars."""
         from .driving import _drivable_nexts
 
         s = self._require()
@@ -1937,9 +1938,14 @@ class SumoTraffic(Component):
         except self._exc:
             return None
         # back along the way to the last edge with a U-turn (Steyrer Straße's 23904724#2: the
-        # way on from 23904459#1 is a turn the car cannot make, and it has no U-turn)
+        # way on from 23904459#1 is a turn the car cannot make, and it has no U-turn); with
+        # none, the way up to where it goes on no further, where the car stops (Helsinki's
+        # Alvar Aallon katu, -224479207#1: its every way on passes a tunnel, and no random
+        # draw of seed 0 reached another road: "no route for the ego")
         k = next((k for k in range(len(route) - 1, -1, -1) if self._has_uturn(route[k])), None)
-        return None if k is None else route[:k + 1] + [opposite_edge(route[k])]
+        if k is None:
+            return route if len(route) >= 2 else None
+        return route[:k + 1] + [opposite_edge(route[k])]
 
     def _turned_back_steps(self, route: list):
         """(``route`` up to its first step the car cannot drive or tunnel, that and then back

@@ -717,3 +717,22 @@ def test_sumo_worker_crash_is_survived(motorway_world):
     assert summary.distance_m > 300 and summary.ego_collisions == 0
     assert gap < 3.0                              # SUMO has the ego again
     assert summary.max_vehicles > 0
+
+
+def test_a_road_whose_every_way_on_passes_a_tunnel_is_driven_to_its_end(helsinki_world):
+    """Helsinki, no goal, seed 0: from Alvar Aallon katu (-224479207#1) every way on passes a
+    tunnel, and none of the random draws reached another road: the start was refused ("no
+    route for the ego from edge -224479207#1"). The car now drives along the road as far as it
+    goes (through the short passages under the buildings, 10-12 m, onto the surface beyond)
+    and turns round at its end."""
+    sim = Simulation(SimConfig(world_dir=str(helsinki_world), traffic="none", seed=0, start=(60.174853, 24.938419),
+                               duration_s=60.0, parallel_sumo=False)).setup()
+    try:
+        sim.physics.load_budget_ms = 1e9
+        assert sim.route[:2] == ["-224479207#1", "-224479207#0"], sim.route
+        summary = sim.run()
+        stats = sim.driver.stats
+    finally:
+        sim.teardown()
+    assert summary.ego_collisions == 0 and summary.distance_m > 150.0, summary.line()
+    assert stats.turnarounds == 1, summary.line()
