@@ -487,6 +487,14 @@ def _repaired_polygons(rings) -> np.ndarray:
     return polys
 
 
+def _near_polygons(pts, polys, reach) -> tuple:
+    """Pairs (point number, polygon number) of the shapely points ``pts`` and ``polys`` within
+    ``reach[point]`` of each other."""
+    qi, ji = shapely.STRtree(polys).query(pts, predicate="dwithin", distance=float(np.max(reach)) if len(reach) else 0.0)
+    ok = shapely.distance(pts[qi], polys[ji]) <= reach[qi]
+    return qi[ok], ji[ok]
+
+
 def _open_ring(shape):
     """A polygon shape without its closing point, or None with fewer than 3 points left."""
     ring = shape
@@ -1058,11 +1066,8 @@ def _deck_ends_on_other_junctions(edges, ref_e, RP, rg, deck, edge_hw, jids, jpo
     ends, node = ends[sel], node[sel]
     if not len(ends) or not len(jids):
         return set()
-    hw = edge_hw[ref_e[rg[ends]]]
-    pts = shapely.points(RP[ends])
-    qi, ji = shapely.STRtree(jpolys).query(pts, predicate="dwithin", distance=float(hw.max()))
-    near = shapely.distance(jpolys[ji], pts[qi]) <= hw[qi]
-    return {node[q] for q, j in zip(qi[near].tolist(), ji[near].tolist()) if jids[j] != node[q]}
+    qi, ji = _near_polygons(shapely.points(RP[ends]), jpolys, edge_hw[ref_e[rg[ends]]])
+    return {node[q] for q, j in zip(qi.tolist(), ji.tolist()) if jids[j] != node[q]}
 
 
 def _raise_decks(edges, ref_e, rg, rs, rz, deck, edge_deck, clearance, junction_clearance=None) -> None:
@@ -1135,12 +1140,9 @@ def _deck_junction_clearance(RP, idx, own_e, hw, rz, planes, jids, jpolys, edges
     need = np.full(len(idx), np.nan)
     if not len(idx) or not len(jids):
         return need
-    pts = shapely.points(RP[idx])
-    qi, ji = shapely.STRtree(jpolys).query(pts, predicate="dwithin", distance=float(hw.max()))
+    qi, ji = _near_polygons(shapely.points(RP[idx]), jpolys, hw)
     if not len(qi):
         return need
-    ok = shapely.distance(pts[qi], jpolys[ji]) <= hw[qi]
-    qi, ji = qi[ok], ji[ok]
     nodes = [jids[j] for j in ji.tolist()]
     ok = np.array([j not in deck_nodes and j not in (edges[int(e)].from_node, edges[int(e)].to_node)
                    for j, e in zip(nodes, own_e[qi].tolist())], dtype=bool)
@@ -1277,12 +1279,9 @@ def _decks_onto_junctions(edges, ref_e, RP, rg, rs, rz, deck, hw, planes, juncti
     polys = shapely.polygons(shapely.linearrings(R, indices=rgi))
     g = rg[idx]
     reach = np.maximum(hw[g] - CONFORM_MIN_OVERLAP_M, 0.0)
-    pts = shapely.points(RP[idx])
-    qi, ji = shapely.STRtree(polys).query(pts, predicate="dwithin", distance=float(reach.max()))
+    qi, ji = _near_polygons(shapely.points(RP[idx]), polys, reach)
     if not len(qi):
         return out
-    ok = shapely.distance(pts[qi], polys[ji]) <= reach[qi]
-    qi, ji = qi[ok], ji[ok]
     # (not the deck's own nodes: its ends are on their planes already)
     own = np.array([jid[j] in (edges[int(ref_e[g[q]])].from_node, edges[int(ref_e[g[q]])].to_node)
                     for q, j in zip(qi.tolist(), ji.tolist())], dtype=bool)
