@@ -30,8 +30,10 @@
 from __future__ import annotations
 
 import math
+import os
 import re
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -561,6 +563,29 @@ def _route_steps(sim, src: str, dst: str, max_edges: int = 20000):
 
 #: (network, edge) -> (``_drivable_nexts`` without a destination, the edges it looked at)
 _NEXTS_CACHE: dict = {}
+
+
+_NET_FILES: dict = {}
+
+
+def note_network(sim, net_file) -> None:
+    """``sim`` has just loaded the network ``net_file``: what the caches kept per network
+    (:func:`_net_key`, its boundary) hold for another network of the same boundary is dropped.
+    Two networks of one place can share it: a test's own netconvert run of the Helsinki
+    preset and the preset's world, whose tunnels are kept apart; a route drawn on the world
+    in the same process then took the other network's steps from Alvar Aallon katu, found
+    none, and the start was refused."""
+    try:
+        key = _net_key(sim)
+        st = os.stat(net_file)
+        ident = (str(Path(net_file).resolve()), st.st_size, st.st_mtime_ns)
+    except Exception:
+        return
+    if _NET_FILES.get(key, ident) != ident:
+        for cache in (_TURNAROUND_CACHE, _NEXTS_CACHE):
+            for k in [k for k in cache if k[0] == key]:
+                del cache[k]
+    _NET_FILES[key] = ident
 
 
 def _net_key(sim) -> tuple:

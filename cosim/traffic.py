@@ -691,8 +691,11 @@ class SumoTraffic(Component):
         return " ".join(msg.split())
 
     def _after_start(self):
+        from .driving import note_network
+
         s = self._sim
         tc = self._tc
+        note_network(s, self.net_file)
         # (no subscription to the lights' states: SUMO would assemble all of them every step,
         # 0.3-0.6 ms of a step on central Helsinki's 235; tls_states reads them when asked)
         self._tls_ids = list(s.trafficlight.getIDList())

@@ -1542,3 +1542,33 @@ def test_sumo_cars_change_lanes_over_seconds_not_in_one_step(traffic, lane_chang
         assert np.sum(moves > 0.02) >= 20                   # spread over 2 s or more
     else:
         assert moves.max() > 0.8 * width                    # (the case that matters)
+
+
+def test_a_network_of_the_same_boundary_does_not_reuse_the_others_steps(helsinki_net, traffic, tmp_path):
+    """The steps a car can drive, kept per network by its boundary (``_net_key``), are dropped
+    when a network of the same boundary but another file is loaded: the test's own netconvert
+    run of the Helsinki preset and the preset's world share it, and a route drawn on the world
+    after this file's tests took this network's steps from Alvar Aallon katu, found none, and
+    refused the start. The same file loaded again keeps them."""
+    import shutil
+
+    from cosim.driving import _NEXTS_CACHE, _drivable_nexts, _net_key
+
+    t = traffic()
+    s = t._require()
+    start = passenger_lanes(s, 50.0)[0][0].rsplit("_", 1)[0]
+    _drivable_nexts(s, start)
+    key = (_net_key(s), start)
+    assert key in _NEXTS_CACHE
+    t.teardown()
+    t = traffic()                                   # the same file again: kept
+    assert key in _NEXTS_CACHE
+    t.teardown()
+    other = tmp_path / "copy.net.xml"               # another file of the same network
+    shutil.copy(helsinki_net, other)
+    t2 = SumoTraffic(other, ())
+    t2.setup()
+    try:
+        assert _net_key(t2._require()) == key[0] and key not in _NEXTS_CACHE
+    finally:
+        t2.teardown()
