@@ -997,9 +997,14 @@ def _lift_viaducts(edges, ref_e, rg, rs, rtot, rz, deck, planes, clearance, keep
     # the highest each node may stand: from the abutments along the decks at DECK_MAX_GRADE
     # (a source joined to each abutment by the rise from the lowest one)
     base = float(np.min(h[src]))
-    w = np.r_[length, length, (h[src] - base) / DECK_MAX_GRADE]
-    graph = sp.csr_matrix((np.maximum(w, 1e-9), (np.r_[a, b, np.full(len(src), m)], np.r_[b, a, src])),
-                          shape=(m + 1, m + 1))
+    w = np.maximum(np.r_[length, length, (h[src] - base) / DECK_MAX_GRADE], 1e-9)
+    rows, cols = np.r_[a, b, np.full(len(src), m)], np.r_[b, a, src]
+    # (one entry per pair of nodes, the shortest: a sparse matrix sums duplicates, and a
+    # street's two directions are two decks between the same nodes)
+    o = np.lexsort((w, cols, rows))
+    rows, cols, w = rows[o], cols[o], w[o]
+    one = np.r_[True, (rows[1:] != rows[:-1]) | (cols[1:] != cols[:-1])]
+    graph = sp.csr_matrix((w[one], (rows[one], cols[one])), shape=(m + 1, m + 1))
     top = base + DECK_MAX_GRADE * dijkstra(graph, indices=m)[:m]
     prof = np.full(len(ref_e), -1, dtype=np.int64)
     prof[dk] = np.arange(len(dk))
