@@ -247,6 +247,7 @@ class Simulation:
             x, y, yaw, lane, pos, plan = self._face_the_way(*self._snap_start())
             self.physics.update(x, y, self.keep_radius, budget_ms=1e9)
             z = float(self.world.ground_z(x, y)[0])
+            # (the bridges' lanes read now, not in the first frame: the mirror's decks too)
             if lane in self.world.bridge_lanes():
                 # (on a bridge: on its deck, not on the ground under it; Portland, a start on the
                 # Hawthorne Bridge's lane -282174242#0_0 put the car on the river 8 m below, and
@@ -257,7 +258,6 @@ class Simulation:
             self.vehicle = EgoVehicle(self.physics.client, position=(x, y, z + 0.05), yaw=yaw)
             self.vehicle.place_on_ground(x, y, yaw, z)      # on the road surface, tilted with it
             self.mirror = ActorMirror(self.physics.client, self.world, visuals=cfg.gui or cfg.render)
-            self.world.bridge_lanes()           # (read now, not in the first frame: the mirror's decks)
             if plan is not None:
                 self._apply_plan(plan)              # (planned already, facing the way)
             else:

@@ -2782,7 +2782,8 @@ def _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_ed
 
 def _onto_vehicle_lanes(xy, z, sel, veh, core_tree, C, cg, cz, max_apart: float = CONFORM_MAX_M) -> int:
     """Heights ``z`` (in place) of the points ``xy[sel]`` (of the junctions and walking areas
-    of nodes only paths meet) that lie on a vehicle lane ``veh[k]`` (within
+    of nodes only paths meet; of the strips of turns that leave their junction) that lie on a
+    vehicle lane ``veh[k]`` (within
     :data:`SIDEWALK_INTRUSION_M` of its strip in ``core_tree``, :func:`_higher_roads`', which is
     that much narrower either side) and within ``max_apart``
     (:data:`CONFORM_MAX_M`) of its height: that lane's height where they project onto its
