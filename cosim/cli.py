@@ -339,7 +339,7 @@ def make_parser() -> argparse.ArgumentParser:
     g.add_argument("--duration", type=float, metavar="S", help="simulated seconds (default 60)")
     g.add_argument("--speed", type=float, metavar="MPS", help="the ego's set speed in m/s (default 10)")
     g.add_argument("--traffic", metavar="DENSITY", help="none | light | normal | dense | vehicles per km2 of the network "
-                   "within the world")
+                   "within the world (the names scaled by the preset's traffic_scale: Kouvola's 0.5)")
     g.add_argument("--seed", type=int, help="random seed, 0..2147483647: the same seed (world, --duration and "
                    "--parallel-sumo) repeats the run")
     g.add_argument("--lane-change", type=float, metavar="S", help="SUMO's drivers change lanes over S seconds "

@@ -155,6 +155,7 @@ class Simulation:
         self.cfg = copy.deepcopy(config.validate())
         self.progress = progress or (lambda *a, **k: None)
         self.world = None
+        self.demand = None          # the run's cosim.demand.Demand (its plan: the density used)
         self.traffic = None
         self.physics = None
         self.mirror = None
@@ -206,7 +207,7 @@ class Simulation:
 
     # ------------------------------------------------------------------------------------
     def setup(self) -> "Simulation":
-        from .demand import generate_demand
+        from .demand import generate_demand, place_density
         from .mirror import ActorMirror
         from .physics import PhysicsWorld
         from .telemetry import Telemetry
@@ -221,9 +222,11 @@ class Simulation:
         cfg = self.cfg
         try:
             self.world = self._load_world()
-            self.progress("traffic", 0.0, "generating traffic demand")
-            demand = generate_demand(self.world.net_file, self.world.path / "traffic", density=cfg.traffic,
-                                     seed=cfg.seed, duration=max(cfg.duration_s, 60.0) + 60.0)
+            density = place_density(cfg.traffic, self.world.traffic_scale)
+            self.progress("traffic", 0.0, f"generating traffic demand ({density:g} vehicles/km2)")
+            self.demand = demand = generate_demand(self.world.net_file, self.world.path / "traffic",
+                                                   density=density, seed=cfg.seed,
+                                                   duration=max(cfg.duration_s, 60.0) + 60.0)
             self.progress("sumo", 0.0, "starting SUMO")
             kind = SumoTraffic
             if self.parallel_sumo:

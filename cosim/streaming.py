@@ -61,7 +61,7 @@ LOOKAHEAD_M = (100.0, 600.0)
 def _build_window(cfg_dict: dict, window: tuple, out: str, traffic, seed: int, duration: float, conn):
     """Worker process: build a window and its demand; send (out, route files) or an error."""
     try:
-        from cosim.demand import generate_demand
+        from cosim.demand import generate_demand, place_density
         from netgen.build import PLANES_FILE, build_world
         from netgen.config import WorldConfig
 
@@ -71,7 +71,9 @@ def _build_window(cfg_dict: dict, window: tuple, out: str, traffic, seed: int, d
         # (the road heights of the world's register: <world>/windows/<i>_<j> -> <world>)
         w = build_world(cfg, heights=Path(out).parent.parent / PLANES_FILE)
         net = Path(w["out"]) / w["net_file"]
-        d = generate_demand(net, Path(w["out"]) / "traffic", density=traffic, seed=seed, duration=duration)
+        d = generate_demand(net, Path(w["out"]) / "traffic",
+                            density=place_density(traffic, w.get("traffic", {}).get("scale", 1.0)),
+                            seed=seed, duration=duration)
         from .world import write_bridge_lanes
         write_bridge_lanes(net)        # (read here, not in the loop's frame at the swap)
         result = ("ok", w["out"], [str(p) for p in d.route_files])

@@ -42,6 +42,7 @@ class World:
         #: lanes over a road stacked under them (OSM layers, no bridge: netgen's
         #: _stack_under_higher_layers): vehicles on them are put on their surface, as on a deck
         self.stacked_over = frozenset(m.get("stacked_over_lanes", ()))
+        self.traffic_scale = float(m.get("traffic", {}).get("scale", 1.0))   # cosim.demand.place_density
         self.windows = [self.path]
         self._grids: dict = {}
         self._scenery: dict = {}

@@ -176,11 +176,11 @@ def _osm_for(cfg, source, bbox, cache: Path) -> tuple[Path, dict]:
 VOLATILE_INFO = {"requests", "cached", "attempts", "url", "urls"}
 
 
-def _build_key(cfg: WorldConfig, osm_sha: str, elev_info: dict, centre) -> str:
+def _build_key(cfg: WorldConfig, osm_sha: str, elev_info: dict, centre, traffic_scale: float = 1.0) -> str:
     stable = {k: v for k, v in elev_info.items() if k not in VOLATILE_INFO}
     extra = {"osm": osm_sha, "elev": json.dumps(stable, sort_keys=True, default=str),
              "centre": [round(centre[0], 7), round(centre[1], 7)], "format": FORMAT_VERSION,
-             "code": NETGEN_VERSION}
+             "code": NETGEN_VERSION, "traffic_scale": traffic_scale}
     return cfg.fingerprint(extra)
 
 
@@ -254,7 +254,8 @@ def build_world(cfg: WorldConfig, progress=_noop, force: bool = False, heights=N
             elev_info = elevation.info()
             if cfg.dem:
                 elev_info = {**elev_info, "hashes": _dem_files_key(cfg)}
-            key = _build_key(cfg, osm_info["sha256"], elev_info, centre)
+            scale = preset.traffic_scale if preset is not None else 1.0
+            key = _build_key(cfg, osm_info["sha256"], elev_info, centre, scale)
             if not force and not nc.started:
                 old = load_world_json(out)
                 if old is not None and old.get("build_key") == key:
@@ -268,6 +269,7 @@ def build_world(cfg: WorldConfig, progress=_noop, force: bool = False, heights=N
             world = _build_into(tmp, cfg, frame, chunks, extent, bbox, osm_xml, osm_info, source,
                                 elevation, elev_info, key, name, nc, T, progress, read_planes(heights))
             world["timings_s"]["total"] = round(time.perf_counter() - t_start, 3)
+            world["traffic"] = {"scale": scale, "note": TRAFFIC_NOTE}
             write_text(tmp / "world.json", json.dumps(world, indent=1))
             _swap_into_place(tmp, out)
             if heights is not None:
@@ -282,6 +284,8 @@ def build_world(cfg: WorldConfig, progress=_noop, force: bool = False, heights=N
 
 
 NET_FILE = "net/world.net.xml"
+TRAFFIC_NOTE = ("the named traffic densities (light/normal/dense) are multiplied by scale "
+                "(the preset's traffic_scale); a density in vehicles/km2 is taken as it is")
 PLANES_FILE = "road_planes.npz"
 
 

@@ -2395,3 +2395,21 @@ def test_the_report_says_when_the_osm_data_covers_only_part_of_the_world(tmp_pat
     print_build_report(w, stream=report)
     line = next(ln for ln in report.getvalue().splitlines() if ln.startswith("coverage"))
     assert line.startswith(f"coverage   roads in {len(with_roads)} of 25 chunks: the OSM data covers only part")
+
+
+def test_a_presets_traffic_scale_is_checked_and_listed_presets_keep_theirs(tmp_path):
+    """A preset's ``traffic_scale`` (the named traffic densities' factor) must be in (0, 10]:
+    a bad one is a one-line error naming the file; the embedded Kouvola presets take 0.5,
+    Helsinki 1."""
+    from netgen.presets import get_preset
+
+    assert get_preset("kouvola").traffic_scale == 0.5 == get_preset("kouvola-motorway").traffic_scale
+    assert get_preset("helsinki").traffic_scale == 1.0
+    own = tmp_path / "own"
+    own.mkdir()
+    (own / "town.toml").write_text('name = "town"\nplace = "a town"\nenvironment = "neighbourhood"\n'
+                                   'osm = "town.osm"\ncenter = [60.5, 26.9]\ntraffic_scale = 0\n')
+    env = {**os.environ, "COSIM_PRESETS": str(own)}
+    r = subprocess.run(CLI + ["presets"], cwd=tmp_path, capture_output=True, text=True, timeout=60, env=env)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode != 0 and len(lines) == 1 and "town.toml" in lines[0] and "traffic_scale" in lines[0], r.stderr
