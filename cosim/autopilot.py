@@ -612,16 +612,26 @@ class Autopilot:
 
     # --- turning round (cosim.turnround) -----------------------------------------------------
     def _turns_back(self, path) -> list:
-        """The path's stop lines where it turns back onto its road's other direction along a
-        line the car would run wide of by more than TURN_DEVIATION_MAX_M (a dead end's U-turn,
-        a U-turn inside a junction: SUMO draws them 3-4 m round)."""
+        """The path's stop lines where it turns back onto its road's other direction ("-X" for
+        "X", else by its junctions: ``cosim.traffic.reverses``) along a line the car would
+        run wide of by more than TURN_DEVIATION_MAX_M (a dead end's U-turn, a U-turn inside a
+        junction: SUMO draws them 3-4 m round)."""
         from .driving import TURN_DEVIATION_MAX_M, car_turn_radius, turn_deviation
-        from .traffic import opposite_edge
+        from .traffic import opposite_edge, reverses
 
         out = []
         for u in path.stops:
-            if not u.to_lane or u.to_lane.rsplit("_", 1)[0] != opposite_edge(u.lane.rsplit("_", 1)[0]):
+            if not u.to_lane:
                 continue
+            edge, to = u.lane.rsplit("_", 1)[0], u.to_lane.rsplit("_", 1)[0]
+            if to != opposite_edge(edge):
+                if self._edge_ends is None:     # (one call for the whole network)
+                    try:
+                        self._edge_ends = self.sim.traffic.edge_ends()
+                    except Exception:
+                        continue
+                if not reverses(self._edge_ends, edge, to):
+                    continue
             i0 = path.index_at(u.s - 10.0)
             i1 = path.index_at(u.s + u.internal_length + 10.0)
             if turn_deviation(path.xy[i0:i1 + 1], car_turn_radius()) > TURN_DEVIATION_MAX_M:

@@ -363,10 +363,17 @@ class Simulation:
         tunnel or a turn the car cannot make; it drove into one). (x, y, yaw, lane, pos, the
         goal's plan from the lane taken, if made)"""
 
-        from .traffic import opposite_edge
+        from .traffic import opposite_edge, reverses
+
+        ends = None
 
         def turns_round(route) -> bool:
-            return any(b == opposite_edge(a) for a, b in zip(route, route[1:]))
+            nonlocal ends
+            if any(b == opposite_edge(a) for a, b in zip(route, route[1:])):
+                return True
+            if ends is None:
+                ends = self.traffic.edge_ends()
+            return any(reverses(ends, a, b) for a, b in zip(route, route[1:]))
 
         start = (x, y, yaw, lane, pos, None)
         try:

@@ -386,6 +386,21 @@ def opposite_edge(edge: str) -> str:
     return edge[1:] if edge.startswith("-") else "-" + edge
 
 
+def reverses(ends: dict, edge: str, other: str) -> bool:
+    """Is ``other`` ``edge``'s road in the other direction? "-X" for "X", or, where the network
+    has no "-X", an edge between the same two junctions the other way (``ends``: edge -> (from,
+    to junction), ``SumoTraffic.edge_ends``): OSM can draw a street's two directions as two ways
+    on one line (Helsinki's Mikonkatu, 199191048#1 and -199191047#0, whose dead end's U-turn
+    the car did not turn round at: "goal unreachable")."""
+    opp = opposite_edge(edge)
+    if other == opp:
+        return True
+    if opp in ends:
+        return False
+    a, b = ends.get(edge), ends.get(other)
+    return a is not None and b is not None and other != edge and b == (a[1], a[0])
+
+
 def lane_change_args(seconds: float) -> list:
     """SUMO's options for lane changes over ``seconds`` (0: SUMO's default, within one step);
     also the benchmarks' SUMO alone."""
@@ -1513,7 +1528,7 @@ class SumoTraffic(Component):
         if edge.startswith(":"):
             return None
         try:
-            lanes = _drivable_lanes(s, opposite_edge(edge))
+            lanes = _drivable_lanes(s, self.reverse_edge(edge))
         except self._exc:
             return None
         if not lanes:
@@ -1909,7 +1924,7 @@ class SumoTraffic(Component):
         from .driving import _drivable_lanes, _lane_allows, _links
 
         s = self._require()
-        opp = opposite_edge(edge)
+        opp = self.reverse_edge(edge)
         try:
             return any(link[0].rsplit("_", 1)[0] == opp and _lane_allows(s, link[0])
                        for ln in _drivable_lanes(s, edge) for link in _links(s, ln))
@@ -1930,7 +1945,7 @@ class SumoTraffic(Component):
         try:
             while len(route) < max_edges:
                 here = route[-1]
-                nexts = [(ne, via) for ne, _w, via in _drivable_nexts(s, here) if ne != opposite_edge(here)]
+                nexts = [(ne, via) for ne, _w, via in _drivable_nexts(s, here) if ne != self.reverse_edge(here)]
                 ne, via = next(((ne, via) for ne, via in nexts if ne not in route), (None, None))
                 if ne is None:
                     if nexts:                   # (it loops: round to the edge on the way again)
@@ -1948,7 +1963,7 @@ class SumoTraffic(Component):
         k = next((k for k in range(len(route) - 1, -1, -1) if self._has_uturn(route[k])), None)
         if k is None:
             return route if len(route) >= 2 else None
-        return route[:k + 1] + [opposite_edge(route[k])]
+        return route[:k + 1] + [self.reverse_edge(route[k])]
 
     def _turned_back_steps(self, route: list):
         """(``route`` up to its first step the car cannot drive or tunnel, that and then back
@@ -1960,7 +1975,7 @@ class SumoTraffic(Component):
         fixed, end = yield from self._head_steps(route)
         head = fixed[:end]
         tunnel = end < len(fixed) and is_tunnel(self._require(), fixed[end])
-        return head, (head + [opposite_edge(head[-1])] if self._has_uturn(head[-1]) else None), tunnel
+        return head, (head + [self.reverse_edge(head[-1])] if self._has_uturn(head[-1]) else None), tunnel
 
     def plan_route(self, lane: str, pos: float, goal_xy=None, rng_state=None, max_goal_snap_m: float = 1e9,
                    min_len: float = 800.0, keep_lane: bool = False, at_xy=None, beyond_ok: bool = False) -> dict:
@@ -2063,8 +2078,17 @@ class SumoTraffic(Component):
                 # towards the city's end, its goal to the east: the route turned at a junction,
                 # and the car ran 6 m wide into a building; no road the car can drive leads
                 # back from there.)
-                alt = self._drivable_route(firsts, head, [out["goal"]["lane"]] + [
-                    ln for _, ln in self._lanes_near(gx, gy, radius)])
+                lanes = [out["goal"]["lane"]] + [ln for _, ln in self._lanes_near(gx, gy, radius)]
+                alt = self._drivable_route(firsts, head, lanes)
+                if alt is None:
+                    # none: SUMO's route up to its first step the car cannot drive and back by
+                    # the U-turn there, which the car makes in moves (cosim.turnround), then
+                    # the car's own route (Helsinki: from Mikonkatu, 17058783#1, the only way to
+                    # a goal on Lönnrotinkatu turns round at the street's north end: "goal
+                    # unreachable")
+                    _, turned, _ = _run_steps(self._turned_back_steps(route))
+                    if turned is not None:
+                        alt = self._drivable_route([turned[-1]], turned[:-1], lanes)
                 if alt is not None:
                     route, ln = alt
                     if ln != out["goal"]["lane"]:
@@ -2201,6 +2225,29 @@ class SumoTraffic(Component):
             self._edge_ends = {e: (fr(e), to(e)) for e in s.edge.getIDList() if not e.startswith(":")}
             self._edge_ends_key = key
         return self._edge_ends
+
+    def reverse_edge(self, edge: str) -> str:
+        """``edge``'s road in the other direction (:func:`reverses`: "-X", else an edge between
+        the same two junctions the other way; read when first asked, kept per network), else
+        :func:`opposite_edge`'s name (an edge the network does not have)."""
+        key = self._net_key()
+        if getattr(self, "_reverse_key", None) != key:
+            self._reverse, self._reverse_key = {}, key
+        got = self._reverse.get(edge)
+        if got is None:
+            ends = self.edge_ends()
+            got = opposite_edge(edge)
+            if got not in ends and edge in ends:
+                s = self._require()
+                f, t = ends[edge]
+                try:
+                    back = sorted(e for e in s.junction.getOutgoingEdges(t) if e != edge and ends.get(e) == (t, f))
+                except self._exc:
+                    back = []
+                if back:
+                    got = back[0]
+            self._reverse[edge] = got
+        return got
 
     def via_lanes(self) -> dict[str, tuple]:
         """normal lane -> the junction lanes its links go through, both halves of a link a

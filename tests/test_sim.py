@@ -772,3 +772,33 @@ def test_a_road_whose_every_way_on_passes_a_tunnel_is_driven_to_its_end(helsinki
         sim.teardown()
     assert summary.ego_collisions == 0 and summary.distance_m > 150.0, summary.line()
     assert stats.turnarounds == 1, summary.line()
+
+
+def test_a_goal_whose_way_turns_round_where_the_streets_two_directions_are_two_ways(helsinki_world):
+    """Helsinki: from Mikonkatu (17058783#1) the only way to a goal on Lönnrotinkatu goes up
+    to the street's north end and back by its U-turn, onto 199191048#1's other direction,
+    which OSM maps as another way on the same line (-199191047#0, not "-199191048#1"). The
+    car turns round in moves only onto a road's other direction, which it knew by the name
+    alone: "goal unreachable". It now knows it by the junctions too (reverses), and the
+    goal's route turns back there: the car turns round and arrives."""
+    from cosim.traffic import reverses
+
+    ends = {"a": ("1", "2"), "b": ("2", "1"), "X": ("3", "4"), "-X": ("4", "3"), "Y": ("4", "3"), "c": ("5", "6"),
+            "L": ("7", "7")}
+    assert reverses(ends, "a", "b") and reverses(ends, "b", "a") and reverses(ends, "X", "-X")
+    assert reverses(ends, "Y", "X") and not reverses(ends, "X", "Y")     # (X has its "-X")
+    assert not reverses(ends, "a", "c") and not reverses(ends, "L", "L") and not reverses(ends, "c", "a")
+    sim = Simulation(SimConfig(world_dir=str(helsinki_world), traffic="none", seed=0, start=(60.172295, 24.945207),
+                               goal=(60.166820, 24.939871), duration_s=300.0, parallel_sumo=False)).setup()
+    try:
+        sim.physics.load_budget_ms = 1e9
+        assert sim.traffic.reverse_edge("199191048#1") == "-199191047#0"
+        r = sim.route
+        k = r.index("199191048#1")
+        assert r[k + 1] == "-199191047#0", r
+        summary = sim.run()
+        stats = sim.driver.stats
+    finally:
+        sim.teardown()
+    assert summary.arrived and summary.ego_collisions == 0, summary.line()
+    assert stats.turnarounds == 1 and stats.no_room_to_turn == 0, summary.line()
