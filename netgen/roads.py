@@ -71,6 +71,8 @@ JUNCTION_SUPPORT_STEP = 4.0
 JUNCTION_MAX_GRADE = 0.07
 #: an edge's mean grade (end to end) beyond this is a DEM artefact that the planes take out
 EDGE_MAX_GRADE = 0.25
+#: a junction this share of whose polygon lies inside another's shares its plane (_junction_clusters)
+NESTED_JUNCTION_SHARE = 0.9
 #: a pinned plane (_junction_planes) is taken by a node whose edge ends' mean is this near it
 PIN_MATCH_M = 0.5
 OWN_PLANE_REACH_M = 0.5         # _onto_own_plane: an edge's points this near its one plane's junctions lie on it
@@ -1621,6 +1623,16 @@ def _junction_clusters(junctions: dict, reach: float = 0.3, cluster_m: float = 4
                           np.maximum.reduceat(R[:, 1], np.r_[0, np.cumsum(np.bincount(rgi))[:-1]])])
     a_, b_ = shapely.STRtree(polys).query(polys, predicate="dwithin", distance=reach)
     sel = a_ < b_
+    a_, b_ = a_[sel], b_[sel]
+    # a junction mostly inside another's polygon lies on its plane, however wide the other
+    # (Lauf: 2189534308, 80 m2, inside cluster_251795596_..., 60 x 43 m, on a plane of its own
+    # 0.1 m over it, where a car turning in caught its edge and stood)
+    nested = np.zeros(len(a_), dtype=bool)
+    if len(a_):
+        valid = shapely.make_valid(polys)
+        area = shapely.area(valid)
+        over = shapely.area(shapely.intersection(valid[a_], valid[b_]))
+        nested = over >= NESTED_JUNCTION_SHARE * np.maximum(np.minimum(area[a_], area[b_]), 1e-9)
     parent = list(range(len(jid)))
     box = [[lo[i, 0], lo[i, 1], hi[i, 0], hi[i, 1]] for i in range(len(jid))]
 
@@ -1630,13 +1642,13 @@ def _junction_clusters(junctions: dict, reach: float = 0.3, cluster_m: float = 4
             i = parent[i]
         return i
 
-    for a, b in zip(a_[sel].tolist(), b_[sel].tolist()):
+    for a, b, inside in zip(a_.tolist(), b_.tolist(), nested.tolist()):
         ra, rb = find(a), find(b)
         if ra == rb:
             continue
         u = [min(box[ra][0], box[rb][0]), min(box[ra][1], box[rb][1]),
              max(box[ra][2], box[rb][2]), max(box[ra][3], box[rb][3])]
-        if max(u[2] - u[0], u[3] - u[1]) > cluster_m:
+        if max(u[2] - u[0], u[3] - u[1]) > cluster_m and not inside:
             continue
         parent[rb] = ra
         box[ra] = u
