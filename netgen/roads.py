@@ -1624,15 +1624,6 @@ def _junction_clusters(junctions: dict, reach: float = 0.3, cluster_m: float = 4
     a_, b_ = shapely.STRtree(polys).query(polys, predicate="dwithin", distance=reach)
     sel = a_ < b_
     a_, b_ = a_[sel], b_[sel]
-    # a junction mostly inside another's polygon lies on its plane, however wide the other
-    # (Lauf: 2189534308, 80 m2, inside cluster_251795596_..., 60 x 43 m, on a plane of its own
-    # 0.1 m over it, where a car turning in caught its edge and stood)
-    nested = np.zeros(len(a_), dtype=bool)
-    if len(a_):
-        valid = shapely.make_valid(polys)
-        area = shapely.area(valid)
-        over = shapely.area(shapely.intersection(valid[a_], valid[b_]))
-        nested = over >= NESTED_JUNCTION_SHARE * np.maximum(np.minimum(area[a_], area[b_]), 1e-9)
     parent = list(range(len(jid)))
     box = [[lo[i, 0], lo[i, 1], hi[i, 0], hi[i, 1]] for i in range(len(jid))]
 
@@ -1642,13 +1633,21 @@ def _junction_clusters(junctions: dict, reach: float = 0.3, cluster_m: float = 4
             i = parent[i]
         return i
 
-    for a, b, inside in zip(a_.tolist(), b_.tolist(), nested.tolist()):
+    def nested(a, b) -> bool:
+        # a junction mostly inside another's polygon lies on its plane, however wide the other
+        # (Lauf: 2189534308, 80 m2, inside cluster_251795596_..., 60 x 43 m, on a plane of its
+        # own 0.1 m over it, where a car turning in caught its edge and stood)
+        pa, pb = shapely.make_valid(polys[a]), shapely.make_valid(polys[b])
+        small = min(pa.area, pb.area)
+        return small > 0.0 and shapely.intersection(pa, pb).area >= NESTED_JUNCTION_SHARE * small
+
+    for a, b in zip(a_.tolist(), b_.tolist()):
         ra, rb = find(a), find(b)
         if ra == rb:
             continue
         u = [min(box[ra][0], box[rb][0]), min(box[ra][1], box[rb][1]),
              max(box[ra][2], box[rb][2]), max(box[ra][3], box[rb][3])]
-        if max(u[2] - u[0], u[3] - u[1]) > cluster_m and not inside:
+        if max(u[2] - u[0], u[3] - u[1]) > cluster_m and not nested(a, b):
             continue
         parent[rb] = ra
         box[ra] = u
