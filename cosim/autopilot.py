@@ -625,12 +625,11 @@ class Autopilot:
                 continue
             edge, to = u.lane.rsplit("_", 1)[0], u.to_lane.rsplit("_", 1)[0]
             if to != opposite_edge(edge):
-                if self._edge_ends is None:     # (one call for the whole network)
-                    try:
-                        self._edge_ends = self.sim.traffic.edge_ends()
-                    except Exception:
-                        continue
-                if not reverses(self._edge_ends, edge, to):
+                try:
+                    ends = self._network_ends(self.sim.traffic)
+                except Exception:
+                    continue
+                if not reverses(ends, edge, to):
                     continue
             i0 = path.index_at(u.s - 10.0)
             i1 = path.index_at(u.s + u.internal_length + 10.0)
@@ -1465,11 +1464,15 @@ class Autopilot:
         """Does the edge of `lane` end or start at one of `junctions`?"""
         if not junctions:
             return False
-        if self._edge_ends is None:
-            # (one call for the whole network, asked ahead: _expect)
-            self._edge_ends = tr.edge_ends()
-        ends = self._edge_ends.get(lane.rsplit("_", 1)[0])
+        ends = self._network_ends(tr).get(lane.rsplit("_", 1)[0])
         return ends is not None and (ends[1] in junctions or ends[0] in junctions)
+
+    def _network_ends(self, tr) -> dict:
+        """edge -> (from, to junction) of the network (``SumoTraffic.edge_ends``: one call for
+        the whole network, asked ahead: _expect; kept until SUMO moves to another network)."""
+        if self._edge_ends is None:
+            self._edge_ends = tr.edge_ends()
+        return self._edge_ends
 
     def _sumo_leader(self, s_here, path, actors=None) -> Lead | None:
         """SUMO's leader of the ego, if it is on a lane of the path ahead. Its lane and speed

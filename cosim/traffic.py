@@ -2238,14 +2238,11 @@ class SumoTraffic(Component):
             ends = self.edge_ends()
             got = opposite_edge(edge)
             if got not in ends and edge in ends:
-                s = self._require()
-                f, t = ends[edge]
-                try:
-                    back = sorted(e for e in s.junction.getOutgoingEdges(t) if e != edge and ends.get(e) == (t, f))
+                try:            # (the candidates: the edges out of its to-junction)
+                    outs = self._require().junction.getOutgoingEdges(ends[edge][1])
                 except self._exc:
-                    back = []
-                if back:
-                    got = back[0]
+                    outs = ()
+                got = min((e for e in outs if reverses(ends, edge, e)), default=got)
             self._reverse[edge] = got
         return got
 
