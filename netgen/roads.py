@@ -91,6 +91,9 @@ END_FADE_M = 10.0
 CONFORM_FADE_M = 15.0
 CONFORM_BELOW_M = 0.02
 SOFT_STEP_M = 0.15               # (a path drawn into a vehicle lane, this far off its height: left out there)
+#: a path drawn into a vehicle lane this far off its height at most takes the lane's height
+#: there (build_roads); further off, a footbridge kept on the ground, it is left out there
+PATH_CONFORM_MAX_M = 0.5
 CONFORM_MAX_M = 1.6             # (further apart than this somewhere: a bridge over a road, both kept)
 CONFORM_NODE_CLEAR_M = 15.0    # roads meeting at a node conform only this far beyond its junction
 CONFORM_MIN_OVERLAP_M = 1.0     # (of the cross-section inside the other road's lane: a sliver
@@ -1850,13 +1853,14 @@ def _box_pairs(bmin, bmax, boxes, cell: float = 25.0):
 
 
 def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins: bool = False,
-                     any_rank: bool = False, top: bool = True):
+                     any_rank: bool = False, top: bool = True, min_overlap: float = CONFORM_MIN_OVERLAP_M):
     """For :func:`_conform_to_higher_roads`: the points (numbers) whose cross-section runs far
     enough inside a vehicle lane of a higher-ranked road that their road does not meet at a
     node, with that lane (number among the vehicle lanes) and its edge: the highest-ranked
     one per point. With ``twins``, twin roads (:data:`CONFORM_TWIN_MIN_OVERLAP_M`) count too;
     with ``any_rank``, the roads of any rank but the point's own, and without ``top`` every such
-    (point, lane, road), not only the highest-ranked road's per point (:func:`_top_overlaps`)."""
+    (point, lane, road), not only the highest-ranked road's per point (:func:`_top_overlaps`);
+    ``min_overlap``: how far (m) a cross-section runs inside the lane to count."""
     veh, cores, rank, fn, tn, core_box, nxy, nrad, _, opp = higher
     none = np.zeros(0, np.int64)
     sel = np.arange(len(P)) if only is None else np.flatnonzero(only)
@@ -1885,7 +1889,7 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins:
     ok = shapely.intersects(cores[vi], sections)            # (prepared: fast)
     qi, vi, B, twin, sections = qi[ok], vi[ok], B[ok], twin[ok], sections[ok]
     ok = shapely.length(shapely.intersection(sections, cores[vi])) >= np.where(
-        twin, CONFORM_TWIN_MIN_OVERLAP_M, CONFORM_MIN_OVERLAP_M)
+        twin, CONFORM_TWIN_MIN_OVERLAP_M, min_overlap)
     pi, vi, B, twin = sel[qi[ok]], vi[ok], B[ok], twin[ok]
     if not len(pi) or not top:
         return pi, vi, B
@@ -1907,7 +1911,7 @@ def _top_overlaps(pi, vi, B, key):
 def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_edge, halfw, onto,
                              lower_only: bool = False, only=None, fade: float = CONFORM_FADE_M,
                              cache: dict | None = None, twins: bool = False, max_apart: float = CONFORM_MAX_M,
-                             raise_only: bool = False) -> int:
+                             raise_only: bool = False, pointwise: bool = False) -> int:
     """Heights ``z`` (in place) of the points `P` (lines `g`, arc length `s`) of roads that
     overlap a higher-ranked road without meeting it at a node (or far from the node where they
     meet: :data:`CONFORM_NODE_CLEAR_M`): where a point's cross-section
@@ -1919,7 +1923,8 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     overlap which roads for another call on the same points; ``twins`` (the edges' profiles,
     before the junction planes) conforms twin roads too (:data:`CONFORM_TWIN_MIN_OVERLAP_M`,
     up to their nodes). Two roads that are more than ``max_apart`` (:data:`CONFORM_MAX_M`) apart in height anywhere they
-    overlap are a bridge and the road under it: neither moves.
+    overlap are a bridge and the road under it: neither moves (with ``raise_only`` or
+    ``pointwise``, only the points that far apart stay).
 
     Roads that cross without a junction are a bridge or tunnel that OSM does not tag (a
     service road in Monaco's old railway tunnel under Boulevard Princesse Charlotte), or a
@@ -1950,7 +1955,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     np.maximum.at(apart, inv, np.abs(tz - z[pi]))
     # (with raise_only, point by point: where a bridge comes down to its end beside a road
     # it crosses, or a road climbs beside one)
-    keep = (np.abs(tz - z[pi]) if raise_only else apart[inv]) <= max_apart
+    keep = (np.abs(tz - z[pi]) if raise_only or pointwise else apart[inv]) <= max_apart
     pi, tz = pi[keep], tz[keep]
     n = len(P)
     delta = np.zeros(n)             # (the move, not the height, fades: the road keeps its grade)
@@ -2283,6 +2288,22 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     # footbridge over Avenue du Port, kept on the ground, stood 0.7-1.5 m above the road
     # under it: a slab in a car's way)
     soft = ~drive & ~rail
+    # paths, footways and cycleways drawn into another road's vehicle lane within
+    # PATH_CONFORM_MAX_M of its height take its height there, 2 cm under it, the move fading
+    # along them (Lauf: a path drawn into Daschstraße's lane stood 0.2 m over it, and a car at
+    # 10 m/s stopped dead against its edge); a piece still off it by over SOFT_STEP_M is left
+    # out (_sidewalks_off_other_roads)
+    # (not at its ends, which stay on their junctions: END_FADE_M)
+    path = soft & ~side
+    if path.any():
+        reach = _higher_overlaps(lane_edge, higher, C, cg, own, hw, only=path[cg], min_overlap=0.0)
+        before = cz.copy()
+        conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, own, hw,
+                                              lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts,
+                                                                                           lane_no)[0],
+                                              max_apart=PATH_CONFORM_MAX_M, pointwise=True,
+                                              cache={"pairs": reach})
+        cz[:] = before + (cz - before) * end_hold
     seg_keep, pt_keep = _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_edge, edges,
                                                    jrings, higher[:2])
     # support points for levelling and for junction heights: centrelines and lane corners
@@ -2746,11 +2767,15 @@ def _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_ed
     qi, vi = qi[hit], vi[hit]
     path = ~side[cg[seg[qi]]]       # a path, cycleway, ...: only where it stands off the vehicle lane
     if path.any():
-        mid = 0.5 * (C[seg[qi[path]]] + C[seg[qi[path]] + 1])
-        zl = _onto_profiles(C, cg, cz, mid, veh[vi[path]])[0]
-        zs = 0.5 * (cz[seg[qi[path]]] + cz[seg[qi[path]] + 1])
+        # (off the lane's height at either end or the middle: a segment 0.14 m over a Lauf
+        # lane at its middle stood 0.2 m over it at its end, where a car ran into its edge)
+        a, b, vl = seg[qi[path]], seg[qi[path]] + 1, veh[vi[path]]
+        off = np.zeros(len(a))
+        for pts, zs in ((C[a], cz[a]), (C[b], cz[b]), (0.5 * (C[a] + C[b]), 0.5 * (cz[a] + cz[b]))):
+            zl = _onto_profiles(C, cg, cz, pts, vl)[0]
+            off = np.fmax(off, np.where(np.isfinite(zl), np.abs(zs - zl), np.nan))
         keep_hit = np.ones(len(qi), dtype=bool)
-        keep_hit[np.flatnonzero(path)] = np.isfinite(zl) & (np.abs(zs - zl) > SOFT_STEP_M)
+        keep_hit[np.flatnonzero(path)] = np.isfinite(off) & (off > SOFT_STEP_M)
         qi = qi[keep_hit]
     seg_keep[seg[qi]] = False
     if jrings and side.any():

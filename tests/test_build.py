@@ -1271,6 +1271,46 @@ def test_lauf_with_zipped_srtm(tmp_path):
     _check_nested_junctions_lie_on_the_outer_ones(tmp_path / "w", w)
 
 
+def test_a_path_drawn_into_a_lane_lies_on_it(tmp_path):
+    """Where a path's surface lies in a vehicle lane (its strip less 0.3 m either side), it is
+    not over the lane by more than 8 cm. (Lauf: path 122968364, drawn into Daschstraße's lane
+    -205615788_1 over about 10 m, stood up to 0.18 m over it; a car at 10 m/s ran into its edge
+    and stopped dead. Such a path now takes the lane's height there.)"""
+    import trimesh  # noqa: F401  (the meshes' ray queries)
+
+    osm = shared_file("osm/lauf-2020.osm.pbf")
+    dem = shared_file("dem/N49E011.hgt.zip")
+    w = _dem_world(tmp_path, osm, dem, (49.5149, 11.2659))
+    out = tmp_path / "w"
+    net = read_net(out / w["net_file"], internal=False)
+    lane = net.edges["-205615788"].lanes[1]
+    core = shapely.buffer(shapely.LineString(lane.shape[:, :2]), lane.width / 2 - 0.3, cap_style="flat")
+    meshes: dict = {}
+    for n, g in _tile_meshes(out, "asphalt", "lane/"):
+        k = n.split("/", 1)[1]
+        if k in ("122968364_0", lane.id):
+            meshes.setdefault(k, []).append(g)
+
+    def top(ms, P):
+        z = np.full(len(P), -np.inf)
+        for m in ms:
+            loc, ray, _ = m.ray.intersects_location(np.column_stack([P, np.full(len(P), 5000.0)]),
+                                                    np.tile([0.0, 0.0, -1.0], (len(P), 1)))
+            np.maximum.at(z, ray, loc[:, 2])
+        return z
+
+    x0, y0, x1, y1 = core.bounds
+    X, Y = np.meshgrid(np.arange(x0, x1, 0.25), np.arange(y0, y1, 0.25))
+    P = np.column_stack([X.ravel(), Y.ravel()])
+    P = P[shapely.contains_xy(core, P[:, 0], P[:, 1])]
+    a, b = top(meshes["122968364_0"], P), top(meshes[lane.id], P)
+    both = np.isfinite(a) & np.isfinite(b)
+    assert both.sum() >= 20, both.sum()          # (the path is there, in the lane)
+    over = a[both] - b[both]
+    worst = int(np.argmax(over))
+    assert over[worst] <= 0.08, (P[both][worst].round(2).tolist(), round(float(over[worst]), 3))
+
+
 def _check_nested_junctions_lie_on_the_outer_ones(out: Path, w: dict) -> None:
     """A junction lying (90 % or more) inside another's polygon is on the same surface where
     they overlap. (Lauf: 2189534308, 80 m2, inside cluster_251795596_302225021_35339687, 60 x
