@@ -1,2 +1,2 @@
 """netgen: OpenStreetMap + elevation -> SUMO network and a chunked 3D world."""
-__version__ = "0.1.37"
+__version__ = "0.1.38"

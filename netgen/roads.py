@@ -104,6 +104,13 @@ CONFORM_MIN_OVERLAP_M = 1.0     # (of the cross-section inside the other road's 
 #: nodes, they made steps at the junctions)
 CONFORM_TWIN_MIN_OVERLAP_M = 0.05
 CONFORM_TWIN_NODE_CLEAR_M = 5.0
+#: a road that leaves a node beside a higher-ranked one, its lane inside the other's near the
+#: node (within CONFORM_NODE_CLEAR_M of its junction), comes down onto it there where it
+#: stands at most this much over it, the move fading out along it over FORK_FADE_M
+#: (build_roads; Monaco: Rue du Portier, leaving Boulevard du Larvotto at a sharp angle and
+#: climbing at 12 %, stood 0.8 m over the boulevard's lane, and a car at 10 m/s stopped dead)
+FORK_CONFORM_MAX_M = 2.5
+FORK_FADE_M = 25.0
 #: a bridge deck's points more than this above the natural ground hold no terrain up (the
 #: ground under a bridge stays where it is: a river, a road in a cutting)
 DECK_CLEAR_M = 0.5
@@ -1853,14 +1860,17 @@ def _box_pairs(bmin, bmax, boxes, cell: float = 25.0):
 
 
 def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins: bool = False,
-                     any_rank: bool = False, top: bool = True, min_overlap: float = CONFORM_MIN_OVERLAP_M):
+                     any_rank: bool = False, top: bool = True, min_overlap: float = CONFORM_MIN_OVERLAP_M,
+                     near_nodes: bool = False):
     """For :func:`_conform_to_higher_roads`: the points (numbers) whose cross-section runs far
     enough inside a vehicle lane of a higher-ranked road that their road does not meet at a
     node, with that lane (number among the vehicle lanes) and its edge: the highest-ranked
     one per point. With ``twins``, twin roads (:data:`CONFORM_TWIN_MIN_OVERLAP_M`) count too;
     with ``any_rank``, the roads of any rank but the point's own, and without ``top`` every such
     (point, lane, road), not only the highest-ranked road's per point (:func:`_top_overlaps`);
-    ``min_overlap``: how far (m) a cross-section runs inside the lane to count."""
+    ``min_overlap``: how far (m) a cross-section runs inside the lane to count. With
+    ``near_nodes``, only the points near a node their road and the other meet at (where they
+    are otherwise left out), of roads that are neither twins nor each other's opposite."""
     veh, cores, rank, fn, tn, core_box, nxy, nrad, _, opp = higher
     none = np.zeros(0, np.int64)
     sel = np.arange(len(P)) if only is None else np.flatnonzero(only)
@@ -1878,10 +1888,12 @@ def _higher_overlaps(lane_edge, higher, P, g, own_edge, halfw, only=None, twins:
     Q = P[sel[qi]]
     # (a street's two directions share one profile already: no twins)
     twin = (((fn[A] == fn[B]) & (tn[A] == tn[B])) | ((fn[A] == tn[B]) & (tn[A] == fn[B]))) & twins & (opp[A] != B)
+    near = np.zeros(len(qi), dtype=bool)
     for a in (fn[A], tn[A]):
         shared = (a == fn[B]) | (a == tn[B])
         d = np.hypot(Q[:, 0] - nxy[a, 0], Q[:, 1] - nxy[a, 1])
-        ok &= ~shared | (d > nrad[a] + np.where(twin, CONFORM_TWIN_NODE_CLEAR_M, CONFORM_NODE_CLEAR_M))  # (NaN: never far)
+        near |= shared & ~(d > nrad[a] + np.where(twin, CONFORM_TWIN_NODE_CLEAR_M, CONFORM_NODE_CLEAR_M))  # (NaN: never far)
+    ok &= (near & ~twin & (opp[A] != B)) if near_nodes else ~near
     qi, vi, B, twin = qi[ok], vi[ok], B[ok], twin[ok]
     if not len(qi):
         return none, none, none
@@ -2114,6 +2126,16 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     geo.planes = planes
 
     conformed = conform()
+    # and a road that leaves a node beside a higher-ranked one, inside its lane near the node,
+    # comes down onto it there (FORK_CONFORM_MAX_M; after the planes: before them, the moves
+    # changed the nodes' planes and left steps between lanes and junctions in Lauf)
+    forks = _higher_overlaps(lane_edge, higher, RP, rg, ref_e[rg], edge_hw[ref_e[rg]], only=vehicle_edge[ref_e[rg]],
+                             near_nodes=True)
+    if len(forks[0]):
+        conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, RP, rg, rs, rz, ref_e[rg],
+                                              edge_hw[ref_e[rg]], onto_profile, lower_only=True, pointwise=True,
+                                              max_apart=FORK_CONFORM_MAX_M, fade=FORK_FADE_M,
+                                              cache={"pairs": forks})
     # roads stacked in OSM's layers, neither a bridge: the lower goes under the higher
     opposite_profile = _opposite_profiles(edges, ref_e)
     stacked = _stack_under_higher_layers(edges, lanes, lane_edge, higher, ref_e, group_of, opposite_profile,
