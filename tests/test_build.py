@@ -1278,13 +1278,8 @@ def test_a_path_drawn_into_a_lane_lies_on_it(tmp_path):
     and stopped dead. Such a path now takes the lane's height there.)"""
     import trimesh  # noqa: F401  (the meshes' ray queries)
 
-    osm = shared_file("osm/lauf-2020.osm.pbf")
-    dem = shared_file("dem/N49E011.hgt.zip")
-    w = _dem_world(tmp_path, osm, dem, (49.5149, 11.2659))
-    out = tmp_path / "w"
-    net = read_net(out / w["net_file"], internal=False)
-    lane = net.edges["-205615788"].lanes[1]
-    core = shapely.buffer(shapely.LineString(lane.shape[:, :2]), lane.width / 2 - 0.3, cap_style="flat")
+    out, _, lane, core = _world_round_a_lane(tmp_path, "osm/lauf-2020.osm.pbf", "dem/N49E011.hgt.zip",
+                                             (49.5149, 11.2659), "-205615788")
     _check_surface_over_lane(out, "122968364_0", lane.id, core, 0.08)
 
 
@@ -1296,15 +1291,21 @@ def test_a_road_leaving_a_node_inside_anothers_lane_comes_down_onto_it(tmp_path)
     the boulevard's lane -92627431_1, and a car at 10 m/s stopped dead against its edge.)"""
     import trimesh  # noqa: F401  (the meshes' ray queries)
 
-    osm = shared_file("osm/monaco-2022.osm.pbf")
-    dem = shared_file("dem/N43E007.hgt")
-    w = _dem_world(tmp_path, osm, dem, (43.7443, 7.4302))
+    out, net, lane, core = _world_round_a_lane(tmp_path, "osm/monaco-2022.osm.pbf", "dem/N43E007.hgt",
+                                               (43.7443, 7.4302), "-92627431")
+    assert net.edges["24655134#0"].from_node == net.edges["-92627431"].to_node
+    _check_surface_over_lane(out, "24655134#0_1", lane.id, core, 0.3)
+
+
+def _world_round_a_lane(tmp_path, osm: str, dem: str, center, edge: str):
+    """A 1 km world (shared data files ``osm``, ``dem``) round ``center``: its folder, network,
+    the second lane of ``edge`` and that lane's strip less 0.3 m either side."""
+    w = _dem_world(tmp_path, shared_file(osm), shared_file(dem), center)
     out = tmp_path / "w"
     net = read_net(out / w["net_file"], internal=False)
-    lane = net.edges["-92627431"].lanes[1]
-    assert net.edges["24655134#0"].from_node == net.edges["-92627431"].to_node
-    core = shapely.buffer(shapely.LineString(lane.shape[:, :2]), lane.width / 2 - 0.3, cap_style="flat")
-    _check_surface_over_lane(out, "24655134#0_1", lane.id, core, 0.3)
+    lane = net.edges[edge].lanes[1]
+    return out, net, lane, shapely.buffer(shapely.LineString(lane.shape[:, :2]), lane.width / 2 - 0.3,
+                                          cap_style="flat")
 
 
 def _check_surface_over_lane(out: Path, name: str, lane_id: str, core, most: float, least_points: int = 20) -> None:
