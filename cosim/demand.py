@@ -147,6 +147,12 @@ def place_density(density, scale: float = 1.0) -> float:
     return value
 
 
+def world_traffic_scale(meta: dict) -> float:
+    """A world's traffic scale (its world.json ``traffic.scale``; 1 for a world built before
+    it), for :func:`place_density`."""
+    return float(meta.get("traffic", {}).get("scale", 1.0))
+
+
 def net_boundary(net_file) -> tuple[float, float, float, float]:
     """convBoundary (xmin, ymin, xmax, ymax) from the net's <location> element."""
     try:

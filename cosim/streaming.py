@@ -61,7 +61,7 @@ LOOKAHEAD_M = (100.0, 600.0)
 def _build_window(cfg_dict: dict, window: tuple, out: str, traffic, seed: int, duration: float, conn):
     """Worker process: build a window and its demand; send (out, route files) or an error."""
     try:
-        from cosim.demand import generate_demand, place_density
+        from cosim.demand import generate_demand, place_density, world_traffic_scale
         from netgen.build import PLANES_FILE, build_world
         from netgen.config import WorldConfig
 
@@ -72,7 +72,7 @@ def _build_window(cfg_dict: dict, window: tuple, out: str, traffic, seed: int, d
         w = build_world(cfg, heights=Path(out).parent.parent / PLANES_FILE)
         net = Path(w["out"]) / w["net_file"]
         d = generate_demand(net, Path(w["out"]) / "traffic",
-                            density=place_density(traffic, w.get("traffic", {}).get("scale", 1.0)),
+                            density=place_density(traffic, world_traffic_scale(w)),
                             seed=seed, duration=duration)
         from .world import write_bridge_lanes
         write_bridge_lanes(net)        # (read here, not in the loop's frame at the swap)

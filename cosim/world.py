@@ -16,6 +16,8 @@ from netgen.errors import DataError
 from netgen.frame import WorldFrame
 from netgen.terrain import TerrainGrid
 
+from .demand import world_traffic_scale
+
 
 class World:
     stacked_over: frozenset = frozenset()       # (see __init__)
@@ -42,7 +44,7 @@ class World:
         #: lanes over a road stacked under them (OSM layers, no bridge: netgen's
         #: _stack_under_higher_layers): vehicles on them are put on their surface, as on a deck
         self.stacked_over = frozenset(m.get("stacked_over_lanes", ()))
-        self.traffic_scale = float(m.get("traffic", {}).get("scale", 1.0))   # cosim.demand.place_density
+        self.traffic_scale = world_traffic_scale(m)        # (cosim.demand.place_density)
         self.windows = [self.path]
         self._grids: dict = {}
         self._scenery: dict = {}

@@ -1923,7 +1923,7 @@ def _top_overlaps(pi, vi, B, key):
 def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_edge, halfw, onto,
                              lower_only: bool = False, only=None, fade: float = CONFORM_FADE_M,
                              cache: dict | None = None, twins: bool = False, max_apart: float = CONFORM_MAX_M,
-                             raise_only: bool = False, pointwise: bool = False) -> int:
+                             raise_only: bool = False, pointwise: bool = False, hold=None) -> int:
     """Heights ``z`` (in place) of the points `P` (lines `g`, arc length `s`) of roads that
     overlap a higher-ranked road without meeting it at a node (or far from the node where they
     meet: :data:`CONFORM_NODE_CLEAR_M`): where a point's cross-section
@@ -1936,7 +1936,8 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     before the junction planes) conforms twin roads too (:data:`CONFORM_TWIN_MIN_OVERLAP_M`,
     up to their nodes). Two roads that are more than ``max_apart`` (:data:`CONFORM_MAX_M`) apart in height anywhere they
     overlap are a bridge and the road under it: neither moves (with ``raise_only`` or
-    ``pointwise``, only the points that far apart stay).
+    ``pointwise``, only the points that far apart stay). ``hold`` (per point, 0..1): the share
+    of its move each point takes (a lane's ends, 0, stay on their junctions' planes).
 
     Roads that cross without a junction are a bridge or tunnel that OSM does not tag (a
     service road in Monaco's old railway tunnel under Boulevard Princesse Charlotte), or a
@@ -1990,7 +1991,7 @@ def _conform_to_higher_roads(edges, lanes, lane_edge, higher, P, g, s, z, own_ed
     near = np.where(dprev <= dnext, pv, nx)
     w = np.clip(1.0 - np.minimum(dprev, dnext) / fade, 0.0, 1.0)
     moved = w > 0.0
-    z[moved] += w[moved] * delta[near[moved]]
+    z[moved] += w[moved] * delta[near[moved]] * (1.0 if hold is None else hold[moved])
     return int(moved.sum())
 
 
@@ -2269,8 +2270,10 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
     def pairs(mask, rk):
         return {"pairs": _top_overlaps(ai[mask], av[mask], aB[mask], rk[aB[mask]])}
 
-    conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, own, hw,
-                                          lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0],
+    def onto_lanes(pts, lane_no, edge_no):      # (the other road's lane, where each point projects)
+        return _onto_profiles(C, cg, cz, pts, lane_no)[0]
+
+    conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, own, hw, onto_lanes,
                                           lower_only=True, only=drive[cg],
                                           cache=pairs(drive[cg][ai] & (rank[aB] > rank[own[ai]]), rank))
     end_fade = np.maximum(np.minimum(END_FADE_M, 0.5 * ctot[cg]), 1e-6)
@@ -2284,48 +2287,39 @@ def build_roads(net, ground, step: float = 2.5, on_support=None, pinned: dict | 
         # deck's lane ends stay on their junctions' planes: the move fades out over the last
         # END_FADE_M of each lane (moved ends folded the junctions' surfaces blended from them).
         at_grade_rank = np.where(edge_deck, -1, higher[2])
-        before = cz.copy()
         conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher[:2] + (at_grade_rank,) + higher[3:],
                                               C, cg, cs, cz, own, hw,
-                                              lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0]
-                                              + CONFORM_BELOW_M,      # (onto it: it went under the deck already)
-                                              lower_only=True, only=on_deck, max_apart=DECK_DOWN_MAX_M,
+                                              lambda *a: onto_lanes(*a) + CONFORM_BELOW_M,   # (onto it: it went
+                                              lower_only=True, only=on_deck,                 # under the deck already)
+                                              max_apart=DECK_DOWN_MAX_M, hold=end_hold,
                                               cache=pairs(on_deck[ai] & (at_grade_rank[aB] > at_grade_rank[own[ai]]),
                                                           at_grade_rank))
-        cz[:] = before + (cz - before) * end_hold
     # and a vehicle lane that another road's lanes still stand over by DECK_DOWN_MAX_M at most
     # where they cross (neither can move otherwise: a road the other ranks over only goes
     # down, and a bridge joined with its approaches into one edge ranks with the other as a
     # deck: Portland's SW Jefferson Street and SW Sheridan Street stood 0.26 and 0.43 m under
     # I-405's lanes, and cars stopped dead against their edges) comes up onto them, point by
     # point, the move fading along it and not at its ends
-    before = cz.copy()
     conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, own, hw,
-                                          lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts, lane_no)[0]
-                                          + CONFORM_BELOW_M, only=drive[cg], max_apart=DECK_DOWN_MAX_M,
-                                          raise_only=True, cache=pairs(drive[cg][ai] & (higher[9][own[ai]] != aB), rank))
-    cz[:] = before + (cz - before) * end_hold
+                                          lambda *a: onto_lanes(*a) + CONFORM_BELOW_M, only=drive[cg],
+                                          max_apart=DECK_DOWN_MAX_M, raise_only=True, hold=end_hold,
+                                          cache=pairs(drive[cg][ai] & (higher[9][own[ai]] != aB), rank))
+    # paths, footways and cycleways drawn into another road's vehicle lane within
+    # PATH_CONFORM_MAX_M of its height take its height there, 2 cm under it, the move fading
+    # along them and not at their ends (Lauf: a path drawn into Daschstraße's lane stood 0.2 m
+    # over it, and a car at 10 m/s stopped dead against its edge); a piece still off it by
+    # over SOFT_STEP_M is left out (_sidewalks_off_other_roads, below)
+    soft = ~drive & ~rail
+    path = soft & ~side
+    if path.any():
+        reach = _higher_overlaps(lane_edge, higher, C, cg, own, hw, only=path[cg], min_overlap=0.0)
+        conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, own, hw, onto_lanes,
+                                              max_apart=PATH_CONFORM_MAX_M, pointwise=True, hold=end_hold,
+                                              cache={"pairs": reach})
     # the pieces of sidewalks, footways, paths and cycleways (lanes no car uses) that lie on
     # another road's carriageway are left out, and do not hold the ground up either (a
     # footbridge over Avenue du Port, kept on the ground, stood 0.7-1.5 m above the road
     # under it: a slab in a car's way)
-    soft = ~drive & ~rail
-    # paths, footways and cycleways drawn into another road's vehicle lane within
-    # PATH_CONFORM_MAX_M of its height take its height there, 2 cm under it, the move fading
-    # along them (Lauf: a path drawn into Daschstraße's lane stood 0.2 m over it, and a car at
-    # 10 m/s stopped dead against its edge); a piece still off it by over SOFT_STEP_M is left
-    # out (_sidewalks_off_other_roads)
-    # (not at its ends, which stay on their junctions: END_FADE_M)
-    path = soft & ~side
-    if path.any():
-        reach = _higher_overlaps(lane_edge, higher, C, cg, own, hw, only=path[cg], min_overlap=0.0)
-        before = cz.copy()
-        conformed += _conform_to_higher_roads(edges, lanes, lane_edge, higher, C, cg, cs, cz, own, hw,
-                                              lambda pts, lane_no, edge_no: _onto_profiles(C, cg, cz, pts,
-                                                                                           lane_no)[0],
-                                              max_apart=PATH_CONFORM_MAX_M, pointwise=True,
-                                              cache={"pairs": reach})
-        cz[:] = before + (cz - before) * end_hold
     seg_keep, pt_keep = _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_edge, edges,
                                                    jrings, higher[:2])
     # support points for levelling and for junction heights: centrelines and lane corners
@@ -2792,12 +2786,11 @@ def _sidewalks_off_other_roads(C, cg, cz, nrm, side, soft, drive, lanes, lane_ed
         # (off the lane's height at either end or the middle: a segment 0.14 m over a Lauf
         # lane at its middle stood 0.2 m over it at its end, where a car ran into its edge)
         a, b, vl = seg[qi[path]], seg[qi[path]] + 1, veh[vi[path]]
-        off = np.zeros(len(a))
+        off = np.zeros(len(a))          # (fmax: a point that projects onto no lane counts 0)
         for pts, zs in ((C[a], cz[a]), (C[b], cz[b]), (0.5 * (C[a] + C[b]), 0.5 * (cz[a] + cz[b]))):
-            zl = _onto_profiles(C, cg, cz, pts, vl)[0]
-            off = np.fmax(off, np.where(np.isfinite(zl), np.abs(zs - zl), np.nan))
+            off = np.fmax(off, np.abs(zs - _onto_profiles(C, cg, cz, pts, vl)[0]))
         keep_hit = np.ones(len(qi), dtype=bool)
-        keep_hit[np.flatnonzero(path)] = np.isfinite(off) & (off > SOFT_STEP_M)
+        keep_hit[np.flatnonzero(path)] = off > SOFT_STEP_M
         qi = qi[keep_hit]
     seg_keep[seg[qi]] = False
     if jrings and side.any():
