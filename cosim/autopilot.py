@@ -154,6 +154,13 @@ YIELD_STATES = set("m=goO")
 RED_STATES = set("rRu")
 YELLOW_STATES = set("yY")
 STOP_STATES = set("sw")
+STUCK_S = 4.0              # held still this long against the throttle, nothing to stop for: a move back
+STUCK_MPS = 0.05           # ... slower than this
+STUCK_THROTTLE = 0.15      # ... with at least this much throttle
+STUCK_LOOK_M = 6.0         # the way the path turns: its heading this far ahead against the car's
+BACKOFF_MAX = 3            # moves back at most within ...
+BACKOFF_SPOT_M = 6.0       # ... this far along the path of one another
+STATIC_TOUCH_M = 0.05      # a wall this near a point of the car's outline is one it touches (_static_in_way)
 
 
 def _normal_lanes(lanes) -> list:
@@ -190,6 +197,7 @@ class DrivingStats:
     lane_change_waits: int = 0   # lane changes held back for a vehicle in the lane changed into
     turnarounds: int = 0     # turns made in moves forward and back where the route turns back (cosim.turnround)
     no_room_to_turn: int = 0     # ... where the carriageway has no room for them: the car stops there
+    backoffs: int = 0        # moves back where the car was held still against the throttle (cosim.turnround.BackOff)
     time_gaps: list = field(default_factory=list, repr=False)   # steady following samples, s
     events: list = field(default_factory=list, repr=False)      # (t, kind, detail)
 
@@ -200,7 +208,7 @@ class DrivingStats:
                 "stop_sign_stops": self.stop_sign_stops, "pedestrian_yields": self.pedestrian_yields,
                 "sweeps": self.sweeps, "rollbacks": self.rollbacks, "standoffs": self.standoffs,
                 "lane_change_waits": self.lane_change_waits, "turnarounds": self.turnarounds,
-                "no_room_to_turn": self.no_room_to_turn,
+                "no_room_to_turn": self.no_room_to_turn, "backoffs": self.backoffs,
                 "time_gap_p5_s": round(float(np.percentile(tg, 5)), 2) if len(tg) else None}
 
 
@@ -279,6 +287,9 @@ class Autopilot:
         self._lat = 0.0
         self.reverse = False              # the gear the car's controls are for (a turn's moves back)
         self._turn = None                 # the turn round under way (cosim.turnround.TurnRound)
+        self._backoff = None              # the move back under way (cosim.turnround.BackOff)
+        self._stuck_s = 0.0               # s the car has been held still against the throttle (_stuck)
+        self._backoffs: list = []         # (path, arc length) of each move back: BACKOFF_MAX per spot
         self._uturns: list = []           # the path's stop lines where it turns back tighter than the car can
         self._no_room: set = set()        # (lane, to_lane) where the carriageway has no room to turn round
         self._lane_widths: dict = {}
@@ -301,6 +312,8 @@ class Autopilot:
         self._st, self._s_here = st, s_here
         if self._turn is not None:
             return self._turning(st, actors, dt, getattr(sim, "t", 0.0))
+        if self._backoff is not None:
+            return self._backing_off(st, actors, dt, getattr(sim, "t", 0.0))
         self.reverse = False
         pr = getattr(sim, "ego_projection", None)
         if pr is not None and pr[0] is path and pr[1] == st.x and pr[2] == st.y and pr[3] == s_here:
@@ -392,6 +405,8 @@ class Autopilot:
         self._update_stats(v, t)
         self._standoff(v, t, actors)
         self.last = (throttle, brake, steer)
+        if self._stuck(st, path, s_here, v_target, reason, throttle, dt, t):
+            return self._backing_off(st, actors, dt, t)
         return throttle, brake, steer
 
     def _lane_change(self, st, path, s_here: float, v: float, actors, dt: float, t: float) -> list:
@@ -756,6 +771,100 @@ class Autopilot:
             throttle, brake, steer = 0.0, 1.0, steer
         self.last = (throttle, brake, steer)
         return throttle, brake, steer
+
+    def _stuck(self, st, path, s_here: float, v_target: float, reason: str, throttle: float, dt: float,
+               t: float) -> bool:
+        """Whether the car, held still for STUCK_S against the throttle with nothing ahead to
+        stop for (cruising or slowing for a bend), starts a move back and round
+        (:class:`cosim.turnround.BackOff`, towards the way its path heads STUCK_LOOK_M on): at
+        most BACKOFF_MAX times within BACKOFF_SPOT_M of the same spot of its path."""
+        if abs(st.speed) < STUCK_MPS and throttle >= STUCK_THROTTLE and v_target > 1.0 and \
+                reason in ("cruise", "curve", "speed limit"):
+            self._stuck_s += dt
+        else:
+            self._stuck_s = 0.0
+        if self._stuck_s < STUCK_S:
+            return False
+        self._stuck_s = 0.0
+        if sum(1 for p, s in self._backoffs if p is path and abs(s - s_here) <= BACKOFF_SPOT_M) >= BACKOFF_MAX:
+            return False
+        from . import vehicle as V
+        from .driving import car_turn_radius
+        from .turnround import BackOff
+
+        i = path.index_at(s_here + STUCK_LOOK_M)
+        j = min(i + 1, len(path.xy) - 1)
+        i = j - 1 if j > 0 else 0
+        ahead = math.atan2(path.xy[j, 1] - path.xy[i, 1], path.xy[j, 0] - path.xy[i, 0])
+        turn = math.remainder(ahead - st.yaw, 2 * math.pi)
+        side = 0 if abs(turn) < math.radians(10.0) else (1 if turn > 0 else -1)
+        self._backoffs.append((path, s_here))
+        self._backoff = BackOff(side, ahead, self.length / 2.0, self.width / 2.0, car_turn_radius(),
+                                V.SPEC.rear_axle_x, math.atan(WHEELBASE / car_turn_radius()))
+        self.stats.backoffs += 1
+        self.stats.events.append((round(t, 2), "backed off", f"held still {STUCK_S:.0f} s at s={s_here:.1f} m"))
+        log.info("t=%.1f s: the car is held still against the throttle at %.1f m along its path: it backs off "
+                 "(%s) and drives on", t, s_here, {1: "right lock, then left", -1: "left lock, then right",
+                                                 0: "straight"}[side])
+        return True
+
+    def _backing_off(self, st, actors, dt: float, t: float):
+        """The moves' controls (:class:`cosim.turnround.BackOff`); once done, the car drives on
+        along its path from where it stands."""
+        bo = self._backoff
+        throttle, brake, steer, rev = bo.control(st, dt, actors, static_in_way=self._static_in_way)
+        self.reverse = rev
+        self.target_speed = 0.0 if (bo.waiting or bo.phase != "go") else MOVE_SPEED_TURN
+        self.reason = "backing off" + (": waiting" if bo.waiting else "")
+        if bo.done:
+            self._backoff = None
+            self.reverse = False
+            self.speed.reset()
+            self._prev_target = None
+            throttle, brake = 0.0, 1.0
+        self.last = (throttle, brake, steer)
+        return throttle, brake, steer
+
+    def _static_in_way(self, st, forward: bool, curvature: float, ahead_m: float) -> bool:
+        """Whether a building or a piece of scenery stands in the way of the car's footprint
+        over the next ``ahead_m`` of a move at ``curvature`` (its rear axle's, 1/m, left
+        positive), forward or back: rays from the footprint's outline (its corners and the
+        middles of its sides, at two heights) to where each point gets. False without the
+        physics world."""
+        import pybullet as pb
+
+        from . import vehicle as V
+        from .turnround import arc_pose
+
+        sim = self.sim
+        phys, veh = getattr(sim, "physics", None), getattr(sim, "vehicle", None)
+        if phys is None or phys.client is None or veh is None:
+            return False
+        hl, hw = self.length / 2.0, self.width / 2.0
+        ox = np.array([hl, hl, 0.0, -hl, -hl, -hl, 0.0, hl])
+        oy = np.array([0.0, hw, hw, hw, 0.0, -hw, -hw, -hw])
+
+        def outline(x, y, yaw):
+            c, s = math.cos(yaw), math.sin(yaw)
+            return np.column_stack([x + c * ox - s * oy, y + s * ox + c * oy])
+
+        P0 = outline(st.x, st.y, st.yaw)
+        P1 = outline(*arc_pose(st.x, st.y, st.yaw, ahead_m if forward else -ahead_m, curvature, V.SPEC.rear_axle_x))
+        z0 = float(getattr(st, "z", veh.state().z))
+        starts, ends = [], []
+        for dz in (-0.15, 0.35):
+            starts += [(float(a), float(b), z0 + dz) for a, b in P0]
+            ends += [(float(a), float(b), z0 + dz) for a, b in P1]
+        hits = pb.rayTestBatch(starts, ends, numThreads=1, collisionFilterMask=veh._ray_mask,
+                               physicsClientId=phys.client)
+        for (a, b), h in zip(zip(starts, ends), hits):
+            # (a face met within STATIC_TOUCH_M of the point: the one it touches, moving off it;
+            # Bullet turns a face's normal towards the ray, from either side)
+            if h[0] < 0 or h[2] * math.dist(a, b) < STATIC_TOUCH_M:
+                continue
+            if phys.body_kind(h[0]) in ("building", "scenery"):
+                return True
+        return False
 
     def _same_level(self, actors, path, s_here: float):
         """`actors` without those on another level than the path: a car on a bridge's deck over

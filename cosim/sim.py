@@ -88,6 +88,7 @@ class Summary:
     standoffs_released: int = 0      # vehicles taken out of SUMO after a standoff with the ego
     turnarounds: int = 0             # turns round in moves forward and back (cosim.turnround)
     no_room_to_turn: int = 0         # ... not made: the carriageway had no room (the car stopped there)
+    backoffs: int = 0                # moves back and round where the car was held still (cosim.turnround.BackOff)
     ego_collisions: int = 0
     distance_m: float = 0.0
     sensor_range_violations: int = 0
@@ -128,6 +129,7 @@ class Summary:
                 + (f"; turned round in moves forward and back {self.turnarounds} time(s)" if self.turnarounds else "")
                 + (f"; stopped where the route turns back, with no room to turn round, {self.no_room_to_turn} "
                    f"time(s)" if self.no_room_to_turn else "")
+                + (f"; backed off where it was held still, {self.backoffs} time(s)" if self.backoffs else "")
                 + (f"; the car stood still with the throttle on for {self.held_s:.0f} s (longest {self.held_longest_s:.0f} s)"
                    if self.held_longest_s >= HELD_WARN_S else "")
                 + f".{arr}")
@@ -1145,6 +1147,7 @@ class Simulation:
         stats = getattr(self.driver, "stats", None)
         s.turnarounds = getattr(stats, "turnarounds", 0)
         s.no_room_to_turn = getattr(stats, "no_room_to_turn", 0)
+        s.backoffs = getattr(stats, "backoffs", 0)
         s.chunks_visited = len(self._chunks_seen)
         if self._frame_ms:
             f = np.array(self._frame_ms)

@@ -332,3 +332,129 @@ class TurnRound:
                 if self.move >= MAX_MOVES:
                     self.failed = True
         return 0.0, 1.0, steer, rev
+
+
+#: m a car held still against something backs off before it drives on (:class:`BackOff`)
+BACKOFF_M = 2.5
+#: m the move back and round keeps off an actor's box
+BACKOFF_CLEAR_M = 0.5
+#: m the move forward at full lock after it goes at most ...
+BACKOFF_FORWARD_M = 6.0
+#: ... ending where the car heads within this of the way on (deg)
+BACKOFF_DONE_DEG = 15.0
+
+
+class BackOff:
+    """Two moves from where the car is held still against something it drives into (a wall it
+    takes a bend too wide for, a step it does not climb): back at full lock against the way the
+    path turns (``side``: +1 where it turns left, 0 straight on), then forward at full lock the
+    way it turns, until the car heads within :data:`BACKOFF_DONE_DEG` of the way on
+    (``way_on``, rad): a driver's move back and round at a tight corner. Each move goes at
+    :data:`MOVE_SPEED`, the one back up to :data:`BACKOFF_M`, the one forward up to
+    :data:`BACKOFF_FORWARD_M`; either ends sooner where the car is held still
+    (:data:`STALL_S`, an actor in its way waited for as long) or before a wall. The car stands
+    braked while its wheels turn to each move's lock. Straight on (``side`` 0) there is only
+    the move back. :meth:`control` gives the pedals, steering and gear each frame until
+    ``done``.
+
+    (Lauf, Förstergasse: an 85-degree bend in a 3.2 m lane with a house 0.24 m outside the
+    lane's edge; the car at full lock met its wall with its front corner at 2.9 m/s and stood
+    against it, throttle on, for the rest of the run. Backed off and driven on by its lane
+    path's steering, it turned the wrong way first, towards the bend's vertex, and met the
+    wall again.)"""
+
+    def __init__(self, side: int, way_on: float, half_l: float, half_w: float, radius: float, rear: float,
+                 max_steer: float, distance: float = BACKOFF_M):
+        from .driving import SpeedController
+
+        self.side, self.way_on = int(side), float(way_on)
+        self.half_l, self.half_w, self.radius, self.rear = half_l, half_w, radius, rear
+        self.max_steer, self.distance = max_steer, distance
+        self.speed = SpeedController()
+        self.move = 0                       # 0: back, 1: forward
+        self.phase = "steer"                # steer (braked, wheels to the lock) / go / stop
+        self.moved = 0.0
+        self.last_xy = None
+        self.stalled_s = 0.0
+        self.waiting = False
+        self.done = False
+
+    def steer_cmd(self) -> float:
+        return float(self.side) * (-1.0 if self.move == 0 else 1.0)
+
+    def blocked(self, st, actors, ahead_m: float) -> bool:
+        """An actor's box within BACKOFF_CLEAR_M of the footprint along the next ``ahead_m`` of
+        the move (boxes, not circles: the car queued behind stands 2 m off the bumper, which a
+        circle round it of half its length closes)."""
+        if actors is None or not len(actors):
+            return False
+        curv = self.steer_cmd() / self.radius
+        sign = -1.0 if self.move == 0 else 1.0
+        poses = [arc_pose(st.x, st.y, st.yaw, sign * d, curv, self.rear) for d in np.linspace(0.0, ahead_m, 4)]
+        P = np.vstack([footprint(x, y, h, self.half_l, self.half_w) for x, y, h in poses])
+        ax, ay = np.asarray(actors.x, dtype=float), np.asarray(actors.y, dtype=float)
+        al, aw = np.asarray(actors.length, dtype=float), np.asarray(actors.width, dtype=float)
+        near = np.flatnonzero(np.hypot(ax - st.x, ay - st.y) < 2 * self.half_l + ahead_m + np.maximum(al, aw) + 3.0)
+        for i in near.tolist():
+            yaw = float(actors.yaw[i])
+            c, s = math.cos(yaw), math.sin(yaw)
+            # the footprints' corners in the actor's frame, and the actor's corners in each
+            # footprint's (each box's distance to the other's corners: the gap between them)
+            dx, dy = P[:, 0] - ax[i], P[:, 1] - ay[i]
+            u, w = np.abs(dx * c + dy * s) - al[i] / 2.0, np.abs(-dx * s + dy * c) - aw[i] / 2.0
+            if np.min(np.hypot(np.maximum(u, 0.0), np.maximum(w, 0.0))) < BACKOFF_CLEAR_M:
+                return True
+            A = footprint(ax[i], ay[i], yaw, al[i] / 2.0, aw[i] / 2.0)
+            for x, y, h in poses:
+                ch, sh = math.cos(h), math.sin(h)
+                ex, ey = A[:, 0] - x, A[:, 1] - y
+                u = np.abs(ex * ch + ey * sh) - self.half_l
+                w = np.abs(-ex * sh + ey * ch) - self.half_w
+                if np.min(np.hypot(np.maximum(u, 0.0), np.maximum(w, 0.0))) < BACKOFF_CLEAR_M:
+                    return True
+        return False
+
+    def _faces_way_on(self, yaw: float) -> bool:
+        return abs(_wrap(yaw - self.way_on)) <= math.radians(BACKOFF_DONE_DEG)
+
+    def control(self, st, dt: float, actors=None, static_in_way=None) -> tuple[float, float, float, bool]:
+        """(throttle, brake, steer, reverse) for this frame. ``static_in_way(st, forward,
+        curvature, metres)``, if given, says whether something that does not move (a wall)
+        stands within that many metres of the footprint's way: the move ends there."""
+        steer = self.steer_cmd()
+        rev = self.move == 0
+        v = float(st.speed)
+        self.waiting = False
+        if self.phase == "steer":
+            if abs(st.steer - steer * self.max_steer) <= STEER_TOL and abs(v) < 0.1:
+                if self.move == 1 and (self.side == 0 or self._faces_way_on(st.yaw)):
+                    self.done = True
+                self.phase, self.moved, self.last_xy, self.stalled_s = "go", 0.0, (st.x, st.y), 0.0
+                self.speed.reset()
+            return 0.0, 1.0, steer, rev
+        if self.phase == "go":
+            step = math.hypot(st.x - self.last_xy[0], st.y - self.last_xy[1])
+            self.moved += step
+            self.last_xy = (st.x, st.y)
+            self.stalled_s = self.stalled_s + dt if step < 0.002 else 0.0
+            left = (self.distance if rev else BACKOFF_FORWARD_M) - self.moved
+            speed = abs(v)
+            look = min(left, speed * speed / (2.0 * STOP_DECEL) + 0.2)
+            if left <= 0.05 or self.stalled_s >= STALL_S or (not rev and self._faces_way_on(st.yaw)) or \
+                    (static_in_way is not None and static_in_way(st, not rev, steer / self.radius, look + 0.1)):
+                self.phase = "stop"
+            elif self.blocked(st, actors, look):
+                self.waiting = True          # (held still: it ends after STALL_S)
+                return 0.0, 1.0, steer, rev
+            else:
+                target = min(MOVE_SPEED, math.sqrt(2.0 * STOP_DECEL * max(left, 0.0)))
+                pitch = float(getattr(st, "pitch", 0.0))
+                th, br = self.speed.control(max(target, 0.3), speed, dt, pitch=-pitch if rev else pitch)
+                return th, br, steer, rev
+        # stop: braked to a standstill, then the next move (or done)
+        if abs(v) < 0.05:
+            if self.move == 0:
+                self.move, self.phase = 1, "steer"
+            else:
+                self.done = True
+        return 0.0, 1.0, steer, rev

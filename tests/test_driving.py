@@ -277,6 +277,44 @@ def test_a_route_that_turns_back_is_driven_as_a_turn_in_moves(lauf_pocket, tmp_p
     assert moved_after > 100.0, moved_after
 
 
+@pytest.fixture(scope="module")
+def lauf_old_town(tmp_path_factory):
+    """Lauf, one chunk round Förstergasse (way 142272501), whose lane bends twice at 75-85
+    degrees between houses."""
+    return shared_world(tmp_path_factory, "lauf-old-town", "osm/lauf-2020.osm.pbf", "dem/N49E011.hgt.zip",
+                        (49.5169, 11.2861))
+
+
+def test_a_car_held_against_a_wall_at_a_tight_bend_backs_off_and_drives_on(lauf_old_town, tmp_path):
+    """Lauf, Förstergasse (-142272501#3): after a right bend the lane turns left by 85 degrees,
+    and the house on the bend's outside stands 0.24 m beyond the lane's edge. The car at full
+    lock met its wall with its front corner and stood against it, throttle on, for the rest of
+    the run (28 s of this one's 40; 126 s in a 300 s drive through it). Held still against the
+    throttle for a few seconds with nothing to stop for, it now backs off at the other lock,
+    turns forward at full lock towards the way on, and drives on along its lane to the goal."""
+    tel = tmp_path / "t.jsonl"
+    sim = start_sim(lauf_old_town, start=(49.516877, 11.286610), goal=(49.516765, 11.285728), speed_mps=10.0,
+                    duration_s=40, telemetry=str(tel))
+    try:
+        assert sim.route[0] == "-142272501#3", sim.route
+        summary = sim.run()
+        stats = sim.driver.stats
+    finally:
+        sim.teardown()
+    rows = [json.loads(line) for line in tel.read_text().splitlines()]
+    backing = [r for r in rows if r["reason"].startswith("backing off")]
+    assert summary.arrived and 1 <= stats.backoffs <= 2, (summary.line(), stats.as_dict())
+    assert summary.ego_collisions <= 1 and summary.held_longest_s < 10.0, summary.line()
+    assert summary.backoffs == stats.backoffs and "backed off where it was held still" in summary.line()
+    assert min(r["speed_mps"] for r in backing) < -0.3          # the move back, in reverse
+    # it turned the car towards the way on: the heading when it drove on, against where it stood
+    t0, t1 = backing[0]["t"], backing[-1]["t"]
+    stood = next(r for r in rows if r["t"] >= t0 - 0.05)
+    after = next(r for r in rows if r["t"] > t1)
+    assert (after["yaw_deg"] - stood["yaw_deg"]) % 360.0 > 25.0, (stood, after)
+    assert all(r["on_road"] for r in rows)
+
+
 def test_a_pocket_of_streets_is_left_by_turning_round(kouvola, caplog, tmp_path):
     """Kouvola (the embedded preset): from -74057323#0 every way on ends at a dead end or a turn
     tighter than the car can make, and so does the other direction's. The route turns back at
