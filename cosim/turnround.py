@@ -228,7 +228,31 @@ def moves_needed(cw: Carriageway, x: float, y: float, yaw: float, half_l: float,
     return None
 
 
-class TurnRound:
+class _Moves:
+    """What :class:`TurnRound` and :class:`BackOff` share: a move begins once the car stands
+    braked with its wheels at the move's lock (:meth:`_ready`), and counts how far it has gone
+    and how long it has been held still (:meth:`_advance`)."""
+
+    def _ready(self, st, steer: float) -> bool:
+        """The wheels at ``steer``'s lock (1.7 s from lock to lock) and the car still: the move
+        starts (phase ``go``)."""
+        if abs(st.steer - steer * self.max_steer) <= STEER_TOL and abs(float(st.speed)) < 0.1:
+            self.phase, self.moved, self.last_xy, self.stalled_s = "go", 0.0, (st.x, st.y), 0.0
+            self.speed.reset()
+            return True
+        return False
+
+    def _advance(self, st, dt: float) -> None:
+        """The move's distance so far, and how long the car has been held where it stands (a
+        step in the road's surface the wheels do not climb at this speed, an actor waited for):
+        the move ends after STALL_S of it."""
+        step = math.hypot(st.x - self.last_xy[0], st.y - self.last_xy[1])
+        self.moved += step
+        self.last_xy = (st.x, st.y)
+        self.stalled_s = self.stalled_s + dt if step < 0.002 else 0.0
+
+
+class TurnRound(_Moves):
     """The moves (module doc) from the car standing in carriageway ``cw``: :meth:`control`
     gives the pedals, steering and gear each frame until ``done`` (or ``failed``)."""
 
@@ -289,18 +313,10 @@ class TurnRound:
         self.waiting = False
         v = float(st.speed)
         if self.phase == "steer":
-            # braked until the wheels reach the lock (1.7 s from lock to lock)
-            if abs(st.steer - steer * self.max_steer) <= STEER_TOL and abs(v) < 0.1:
-                self.phase, self.moved, self.last_xy, self.stalled_s = "go", 0.0, (st.x, st.y), 0.0
-                self.speed.reset()
+            self._ready(st, steer)
             return 0.0, 1.0, steer, rev
         if self.phase == "go":
-            step = math.hypot(st.x - self.last_xy[0], st.y - self.last_xy[1])
-            self.moved += step
-            self.last_xy = (st.x, st.y)
-            # held where it stands (a step in the road's surface the wheels do not climb at this
-            # speed): the move ends there
-            self.stalled_s = self.stalled_s + dt if step < 0.002 else 0.0
+            self._advance(st, dt)
             if self.stalled_s >= STALL_S:
                 self.phase = "stop"
                 return 0.0, 1.0, steer, rev
@@ -344,7 +360,7 @@ BACKOFF_FORWARD_M = 6.0
 BACKOFF_DONE_DEG = 15.0
 
 
-class BackOff:
+class BackOff(_Moves):
     """Two moves from where the car is held still against something it drives into (a wall it
     takes a bend too wide for, a step it does not climb): back at full lock against the way the
     path turns (``side``: +1 where it turns left, 0 straight on), then forward at full lock the
@@ -426,17 +442,11 @@ class BackOff:
         v = float(st.speed)
         self.waiting = False
         if self.phase == "steer":
-            if abs(st.steer - steer * self.max_steer) <= STEER_TOL and abs(v) < 0.1:
-                if self.move == 1 and (self.side == 0 or self._faces_way_on(st.yaw)):
-                    self.done = True
-                self.phase, self.moved, self.last_xy, self.stalled_s = "go", 0.0, (st.x, st.y), 0.0
-                self.speed.reset()
+            if self._ready(st, steer) and self.move == 1 and (self.side == 0 or self._faces_way_on(st.yaw)):
+                self.done = True
             return 0.0, 1.0, steer, rev
         if self.phase == "go":
-            step = math.hypot(st.x - self.last_xy[0], st.y - self.last_xy[1])
-            self.moved += step
-            self.last_xy = (st.x, st.y)
-            self.stalled_s = self.stalled_s + dt if step < 0.002 else 0.0
+            self._advance(st, dt)
             left = (self.distance if rev else BACKOFF_FORWARD_M) - self.moved
             speed = abs(v)
             look = min(left, speed * speed / (2.0 * STOP_DECEL) + 0.2)

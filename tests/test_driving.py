@@ -83,6 +83,21 @@ def start_sim(world, **kw) -> Simulation:
     return sim
 
 
+def drive_logged(world, tmp_path, before=None, **kw):
+    """A run of ``start_sim(world, **kw)`` with telemetry: (its summary, the autopilot's stats,
+    the telemetry rows). ``before(sim)``, if given, is called after the setup."""
+    tel = tmp_path / "t.jsonl"
+    sim = start_sim(world, telemetry=str(tel), **kw)
+    try:
+        if before is not None:
+            before(sim)
+        summary = sim.run()
+        stats = sim.driver.stats
+    finally:
+        sim.teardown()
+    return summary, stats, [json.loads(line) for line in tel.read_text().splitlines()]
+
+
 def s_of(sim, x, y) -> tuple[float, float]:
     """Arc length and lateral offset of a point on the simulation's lane path."""
     _, s, off = sim.path.project(x, y, sim._path_idx)
@@ -254,14 +269,8 @@ def test_a_route_that_turns_back_is_driven_as_a_turn_in_moves(lauf_pocket, tmp_p
     drove that loop at full lock 6 m wide of it: off the road for 78 s of 110, into a building
     (at 1.3 m/s), where it stood 77 s. It now stops short of the turn and turns round in moves
     forward and back inside the carriageway (``cosim.turnround``), then drives on."""
-    tel = tmp_path / "t.jsonl"
-    sim = start_sim(lauf_pocket, start=(49.500266, 11.262326), speed_mps=10.0, duration_s=110, telemetry=str(tel))
-    try:
-        summary = sim.run()
-        stats = sim.driver.stats
-    finally:
-        sim.teardown()
-    rows = [json.loads(line) for line in tel.read_text().splitlines()]
+    summary, stats, rows = drive_logged(lauf_pocket, tmp_path, start=(49.500266, 11.262326), speed_mps=10.0,
+                                        duration_s=110)
     turning = [r for r in rows if r["reason"].startswith("turning round")]
     assert stats.turnarounds >= 1 and stats.no_room_to_turn == 0, stats.as_dict()
     assert summary.turnarounds == stats.turnarounds and "turned round in moves" in summary.line()
@@ -292,16 +301,11 @@ def test_a_car_held_against_a_wall_at_a_tight_bend_backs_off_and_drives_on(lauf_
     the run (28 s of this one's 40; 126 s in a 300 s drive through it). Held still against the
     throttle for a few seconds with nothing to stop for, it now backs off at the other lock,
     turns forward at full lock towards the way on, and drives on along its lane to the goal."""
-    tel = tmp_path / "t.jsonl"
-    sim = start_sim(lauf_old_town, start=(49.516877, 11.286610), goal=(49.516765, 11.285728), speed_mps=10.0,
-                    duration_s=40, telemetry=str(tel))
-    try:
+    def on_forstergasse(sim):
         assert sim.route[0] == "-142272501#3", sim.route
-        summary = sim.run()
-        stats = sim.driver.stats
-    finally:
-        sim.teardown()
-    rows = [json.loads(line) for line in tel.read_text().splitlines()]
+
+    summary, stats, rows = drive_logged(lauf_old_town, tmp_path, before=on_forstergasse, start=(49.516877, 11.286610),
+                                        goal=(49.516765, 11.285728), speed_mps=10.0, duration_s=40)
     backing = [r for r in rows if r["reason"].startswith("backing off")]
     assert summary.arrived and 1 <= stats.backoffs <= 2, (summary.line(), stats.as_dict())
     assert summary.ego_collisions <= 1 and summary.held_longest_s < 10.0, summary.line()
