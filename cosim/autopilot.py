@@ -122,6 +122,7 @@ SWEEP_DECEL = 3.0
 SWEEP_STEP_M = 1.0
 SWEEP_PREDICT_S = 1.0      # a crossing or oncoming actor moves on along its heading for this long in the roll
 SWEEP_PERSON_M = 0.35      # a walking person's box grows by this much more each side in the roll (_sweep)
+SWEEP_WALL_M = 0.1         # the car's footprint grows by this much each side against walls in the roll
 SWEEP_STILL_MPS = 0.2      # ... one slower than this (standing) does not
 SWEEP_STOP_M = 0.5         # stop this far (along the sweep) before the first touch
 SWEEP_GATE_M = 0.15        # no roll while the car is this near the lane path ...
@@ -160,7 +161,8 @@ STUCK_THROTTLE = 0.15      # ... with at least this much throttle
 STUCK_LOOK_M = 6.0         # the way the path turns: its heading this far ahead against the car's
 BACKOFF_MAX = 3            # moves back at most within ...
 BACKOFF_SPOT_M = 6.0       # ... this far along the path of one another
-STATIC_TOUCH_M = 0.05      # a wall this near a point of the car's outline is one it touches (_static_in_way)
+STATIC_TOUCH_M = 0.05      # a wall this near a point of the car's outline is one it touches (_static_along)
+STATIC_RAY_DZ = (-0.15, 0.35)   # m over the car's centre of the rays along its outline's way (_static_along)
 
 
 def _normal_lanes(lanes) -> list:
@@ -544,7 +546,8 @@ class Autopilot:
         standing across its path, which waited for one that stood behind the car, in the
         queue SUMO kept behind it; SUMO teleported one every 120 s, and the car drove 114 m in
         300 s); tried again every second while the circle is not closed."""
-        who = self.sweep[1] if self.sweep is not None and self.reason.startswith("clearance") else None
+        who = self.sweep[1] if self.sweep is not None and self.sweep[2] != "building" and \
+            self.reason.startswith("clearance") else None
         circle = False
         if who is None and self.lead is not None and self.lead.gap < STANDOFF_GAP_M and self.lead.actor \
                 and self.lead.kind == "vehicle":
@@ -775,11 +778,12 @@ class Autopilot:
     def _stuck(self, st, path, s_here: float, v_target: float, reason: str, throttle: float, dt: float,
                t: float) -> bool:
         """Whether the car, held still for STUCK_S against the throttle with nothing ahead to
-        stop for (cruising or slowing for a bend), starts a move back and round
+        stop for (cruising or slowing for a bend), or stopped before a wall its sweep meets
+        (:meth:`_sweep`), starts a move back and round
         (:class:`cosim.turnround.BackOff`, towards the way its path heads STUCK_LOOK_M on): at
         most BACKOFF_MAX times within BACKOFF_SPOT_M of the same spot of its path."""
-        if abs(st.speed) < STUCK_MPS and throttle >= STUCK_THROTTLE and v_target > 1.0 and \
-                reason in ("cruise", "curve", "speed limit"):
+        pushing = throttle >= STUCK_THROTTLE and v_target > 1.0 and reason in ("cruise", "curve", "speed limit")
+        if abs(st.speed) < STUCK_MPS and (pushing or reason == "clearance building"):
             self._stuck_s += dt
         else:
             self._stuck_s = 0.0
@@ -803,8 +807,8 @@ class Autopilot:
                                 V.SPEC.rear_axle_x, math.atan(WHEELBASE / car_turn_radius()))
         self.stats.backoffs += 1
         self.stats.events.append((round(t, 2), "backed off", f"held still {STUCK_S:.0f} s at s={s_here:.1f} m"))
-        log.info("t=%.1f s: the car is held still against the throttle at %.1f m along its path: it backs off "
-                 "(%s) and drives on", t, s_here, {1: "right lock, then left", -1: "left lock, then right",
+        log.info("t=%.1f s: the car is held still (%s) at %.1f m along its path: it backs off "
+                 "(%s) and drives on", t, reason, s_here, {1: "right lock, then left", -1: "left lock, then right",
                                                  0: "straight"}[side])
         return True
 
@@ -828,43 +832,52 @@ class Autopilot:
     def _static_in_way(self, st, forward: bool, curvature: float, ahead_m: float) -> bool:
         """Whether a building or a piece of scenery stands in the way of the car's footprint
         over the next ``ahead_m`` of a move at ``curvature`` (its rear axle's, 1/m, left
-        positive), forward or back: rays from the footprint's outline (its corners and the
-        middles of its sides, at two heights) to where each point gets. False without the
-        physics world."""
-        import pybullet as pb
-
+        positive), forward or back (:meth:`_static_along`). False without the physics world."""
         from . import vehicle as V
         from .turnround import arc_pose
 
+        poses = [(st.x, st.y, st.yaw),
+                 arc_pose(st.x, st.y, st.yaw, ahead_m if forward else -ahead_m, curvature, V.SPEC.rear_axle_x)]
+        return self._static_along(st, poses) is not None
+
+    def _static_along(self, st, poses, grow: float = 0.0):
+        """The first of the poses (x, y, yaw) of the car's centre (``poses[0]`` where it is)
+        at which its footprint, grown by ``grow`` m, meets a building or a piece of scenery on
+        its way from the pose before: rays from the footprint's outline (its corners and the
+        middles of its sides, at two heights over the car's centre) to where each point gets,
+        all cast at once. Its index, or None (also without the physics world)."""
+        import pybullet as pb
+
         sim = self.sim
         phys, veh = getattr(sim, "physics", None), getattr(sim, "vehicle", None)
-        if phys is None or phys.client is None or veh is None:
-            return False
-        hl, hw = self.length / 2.0, self.width / 2.0
+        if phys is None or phys.client is None or veh is None or len(poses) < 2:
+            return None
+        hl, hw = self.length / 2.0 + grow, self.width / 2.0 + grow
         ox = np.array([hl, hl, 0.0, -hl, -hl, -hl, 0.0, hl])
         oy = np.array([0.0, hw, hw, hw, 0.0, -hw, -hw, -hw])
-
-        def outline(x, y, yaw):
-            c, s = math.cos(yaw), math.sin(yaw)
-            return np.column_stack([x + c * ox - s * oy, y + s * ox + c * oy])
-
-        P0 = outline(st.x, st.y, st.yaw)
-        P1 = outline(*arc_pose(st.x, st.y, st.yaw, ahead_m if forward else -ahead_m, curvature, V.SPEC.rear_axle_x))
+        Q = np.array(poses, dtype=float)
+        c, s = np.cos(Q[:, 2])[:, None], np.sin(Q[:, 2])[:, None]
+        X, Y = Q[:, :1] + c * ox - s * oy, Q[:, 1:2] + s * ox + c * oy        # (poses, 8)
         z0 = float(getattr(st, "z", veh.state().z))
         starts, ends = [], []
-        for dz in (-0.15, 0.35):
-            starts += [(float(a), float(b), z0 + dz) for a, b in P0]
-            ends += [(float(a), float(b), z0 + dz) for a, b in P1]
+        for dz in STATIC_RAY_DZ:
+            z = z0 + dz
+            for k in range(1, len(Q)):
+                starts += [(a, b, z) for a, b in zip(X[k - 1].tolist(), Y[k - 1].tolist())]
+                ends += [(a, b, z) for a, b in zip(X[k].tolist(), Y[k].tolist())]
         hits = pb.rayTestBatch(starts, ends, numThreads=1, collisionFilterMask=veh._ray_mask,
                                physicsClientId=phys.client)
-        for (a, b), h in zip(zip(starts, ends), hits):
+        first = None
+        n = len(Q) - 1
+        for r, ((a, b), h) in enumerate(zip(zip(starts, ends), hits)):
             # (a face met within STATIC_TOUCH_M of the point: the one it touches, moving off it;
             # Bullet turns a face's normal towards the ray, from either side)
             if h[0] < 0 or h[2] * math.dist(a, b) < STATIC_TOUCH_M:
                 continue
-            if phys.body_kind(h[0]) in ("building", "scenery"):
-                return True
-        return False
+            k = (r // 8) % n + 1
+            if (first is None or k < first) and phys.body_kind(h[0]) in ("building", "scenery"):
+                first = k
+        return first
 
     def _same_level(self, actors, path, s_here: float):
         """`actors` without those on another level than the path: a car on a bridge's deck over
@@ -1024,8 +1037,9 @@ class Autopilot:
 
     def _sweep(self, st, path, s_here, actors, pp) -> tuple | None:
         """Where the car's footprint, rolled forward along the way its steering takes it,
-        first comes within SWEEP_MARGIN_M of a mirrored actor: (distance along the roll, actor
-        id, "vehicle" or "person"), or None.
+        first comes within SWEEP_MARGIN_M of a mirrored actor, or within SWEEP_WALL_M of a
+        building or a piece of scenery (:meth:`_static_along`): (distance along the roll, actor
+        id or "wall", "vehicle", "person" or "building"), or None.
 
         The path corridor (_sense) covers what stands on the lane path; in a turn tighter than
         the car's smallest circle, or at a kink of a junction lane, the car cuts the corner by
@@ -1034,8 +1048,9 @@ class Autopilot:
         askew there was brushed at 2.9 m/s). The roll is pure pursuit on a kinematic bicycle
         (the steering moving at its rate limit) from the car's pose, steered by ``pp``. An
         actor the car touches already is left out (braking cannot help; the other checks see
-        it)."""
-        if actors is None or not len(actors) or st.speed < -0.1:
+        it). (A wall: Lauf's Förstergasse, where the car met a house at a bend at 0.5-2.9 m/s
+        before it backed off: :meth:`_stuck`.)"""
+        if st.speed < -0.1:
             return None
         v = max(st.speed, 0.0)
         reach = min(SWEEP_MAX_M, SWEEP_MIN_M + v * v / (2.0 * SWEEP_DECEL))
@@ -1046,15 +1061,60 @@ class Autopilot:
             i0, i1 = max(0, self._k - 2), path.index_at(s_here + reach + pp.lookahead(v)) + 1
             if i1 <= i0 or float(np.abs(path.curvature_smooth[i0:i1]).max()) * SWEEP_GATE_RADIUS_M < 1.0:
                 return None
+        boxes = self._sweep_boxes(st, actors, reach) if actors is not None and len(actors) else []
+        # the roll: the car's centre every SWEEP_STEP_M
+        c, s = math.cos(st.yaw), math.sin(st.yaw)
+        rear = pp.rear
+        rx, ry, yaw = st.x - rear * c, st.y - rear * s, st.yaw
+        kappa = math.tan(getattr(st, "steer", 0.0)) / WHEELBASE
+        kmax = pp.kmax
+        v_roll = max(v, 1.0)
+        dk = STEER_RATE / WHEELBASE / v_roll * SWEEP_STEP_M     # curvature change per step (small angles)
+        s_path = s_here
+        poses, dists = [], []
+        d = 0.0
+        while True:
+            poses.append((rx + rear * math.cos(yaw), ry + rear * math.sin(yaw), yaw))
+            dists.append(d)
+            if d >= reach:
+                break
+            _, kc = pp.steer(path, poses[-1][0], poses[-1][1], yaw, v_roll, s_path)
+            kc = max(-kmax, min(kmax, kc))
+            kappa += max(-dk, min(dk, kc - kappa))
+            half = yaw + 0.5 * kappa * SWEEP_STEP_M
+            rx += SWEEP_STEP_M * math.cos(half)
+            ry += SWEEP_STEP_M * math.sin(half)
+            yaw += kappa * SWEEP_STEP_M
+            s_path += SWEEP_STEP_M
+            d += SWEEP_STEP_M
+        # a wall on the way (a house at a bend tighter than the lane lets the car take); the
+        # pose where the car stands now is left out (one it touches already: braking cannot help)
+        wall = self._static_along(st, poses, grow=SWEEP_WALL_M)
+        L, W = self.length + 2.0 * SWEEP_MARGIN_M, self.width + 2.0 * SWEEP_MARGIN_M
+        for k, ((x, y, h), d) in enumerate(zip(poses, dists)):
+            if wall is not None and k >= wall:
+                return dists[k - 1], "wall", "building"     # (met on the way from the pose before)
+            b = (x, y, h, L, W)
+            t_roll = min(d / v_roll, SWEEP_PREDICT_S)
+            for i, a, vel in boxes:
+                if vel is not None and t_roll > 0.0:
+                    a = (a[0] + vel[0] * t_roll, a[1] + vel[1] * t_roll) + a[2:]
+                if _boxes_overlap(b, a):
+                    kind = "person" if actors.kind[i] == "person" else "vehicle"
+                    return d, str(actors.ids[i]), kind
+        return None
+
+    def _sweep_boxes(self, st, actors, reach: float) -> list:
+        """For :meth:`_sweep`: the boxes of the actors near enough to meet the car's roll, each
+        as (actor index, box, velocity or None)."""
         dx, dy = actors.x - st.x, actors.y - st.y
         # (the car's box within `reach` of its centre, the actors' boxes: by half diagonals)
         lim = reach + 0.5 * (math.hypot(self.length, self.width) + np.hypot(actors.length, actors.width)) \
             + SWEEP_MARGIN_M + np.abs(actors.speed) * SWEEP_PREDICT_S
         near = np.nonzero(dx * dx + dy * dy < lim * lim)[0]
+        boxes: list = []
         if len(near) == 0:
-            return None
-        L, W = self.length + 2.0 * SWEEP_MARGIN_M, self.width + 2.0 * SWEEP_MARGIN_M
-        boxes = []
+            return boxes
         here = (st.x, st.y, st.yaw, self.length, self.width)
         c, s = math.cos(st.yaw), math.sin(st.yaw)
         behind = -0.5 * self.length + SWEEP_MARGIN_M + 0.15
@@ -1092,36 +1152,7 @@ class Autopilot:
                         # the car's turn held it for good (Helsinki, dense seed 20)
                         b = b[:3] + (b[3] + 2.0 * SWEEP_PERSON_M, b[4] + 2.0 * SWEEP_PERSON_M)
                     boxes.append((i, b, vel))
-        if not boxes:
-            return None
-        rear = pp.rear
-        rx, ry, yaw = st.x - rear * c, st.y - rear * s, st.yaw
-        kappa = math.tan(getattr(st, "steer", 0.0)) / WHEELBASE
-        kmax = pp.kmax
-        v_roll = max(v, 1.0)
-        dk = STEER_RATE / WHEELBASE / v_roll * SWEEP_STEP_M     # curvature change per step (small angles)
-        s_path = s_here
-        d = 0.0
-        while True:
-            b = (rx + rear * math.cos(yaw), ry + rear * math.sin(yaw), yaw, L, W)
-            t_roll = min(d / v_roll, SWEEP_PREDICT_S)
-            for i, a, vel in boxes:
-                if vel is not None and t_roll > 0.0:
-                    a = (a[0] + vel[0] * t_roll, a[1] + vel[1] * t_roll) + a[2:]
-                if _boxes_overlap(b, a):
-                    kind = "person" if actors.kind[i] == "person" else "vehicle"
-                    return d, str(actors.ids[i]), kind
-            if d >= reach:
-                return None
-            _, kc = pp.steer(path, b[0], b[1], yaw, v_roll, s_path)
-            kc = max(-kmax, min(kmax, kc))
-            kappa += max(-dk, min(dk, kc - kappa))
-            half = yaw + 0.5 * kappa * SWEEP_STEP_M
-            rx += SWEEP_STEP_M * math.cos(half)
-            ry += SWEEP_STEP_M * math.sin(half)
-            yaw += kappa * SWEEP_STEP_M
-            s_path += SWEEP_STEP_M
-            d += SWEEP_STEP_M
+        return boxes
 
     def _expect(self, path, s_here, v, actors) -> None:
         """Tell SUMO's worker process (``TrafficProcess.expect``) what this driver will read

@@ -298,9 +298,10 @@ def test_a_car_held_against_a_wall_at_a_tight_bend_backs_off_and_drives_on(lauf_
     """Lauf, Förstergasse (-142272501#3): after a right bend the lane turns left by 85 degrees,
     and the house on the bend's outside stands 0.24 m beyond the lane's edge. The car at full
     lock met its wall with its front corner and stood against it, throttle on, for the rest of
-    the run (28 s of this one's 40; 126 s in a 300 s drive through it). Held still against the
-    throttle for a few seconds with nothing to stop for, it now backs off at the other lock,
-    turns forward at full lock towards the way on, and drives on along its lane to the goal."""
+    the run (28 s of this one's 40; 126 s in a 300 s drive through it). Its sweep now sees the
+    wall, and the car stops short of it; held there a few seconds, it backs off at the other
+    lock, turns forward at full lock towards the way on, and drives on along its lane to the
+    goal, without touching the house."""
     def on_forstergasse(sim):
         assert sim.route[0] == "-142272501#3", sim.route
 
@@ -308,7 +309,8 @@ def test_a_car_held_against_a_wall_at_a_tight_bend_backs_off_and_drives_on(lauf_
                                         goal=(49.516765, 11.285728), speed_mps=10.0, duration_s=40)
     backing = [r for r in rows if r["reason"].startswith("backing off")]
     assert summary.arrived and 1 <= stats.backoffs <= 2, (summary.line(), stats.as_dict())
-    assert summary.ego_collisions <= 1 and summary.held_longest_s < 10.0, summary.line()
+    assert summary.ego_collisions == 0 and summary.held_longest_s < 10.0, summary.line()
+    assert any(r["reason"] == "clearance building" for r in rows)
     assert summary.backoffs == stats.backoffs and "backed off where it was held still" in summary.line()
     assert min(r["speed_mps"] for r in backing) < -0.3          # the move back, in reverse
     # it turned the car towards the way on: the heading when it drove on, against where it stood
@@ -316,7 +318,10 @@ def test_a_car_held_against_a_wall_at_a_tight_bend_backs_off_and_drives_on(lauf_
     stood = next(r for r in rows if r["t"] >= t0 - 0.05)
     after = next(r for r in rows if r["t"] > t1)
     assert (after["yaw_deg"] - stood["yaw_deg"]) % 360.0 > 25.0, (stood, after)
-    assert all(r["on_road"] for r in rows)
+    # on its lane but while it turns (then it swings into the street's other lane, 3.2 m left
+    # of its own, as a driver does round such a corner: on_road counts 3 m either side)
+    assert all(r["on_road"] for r in rows if not t0 <= r["t"] <= t1 + 3.0)
+    assert max(abs(r["lateral_offset_m"]) for r in rows) < 4.8
 
 
 def test_a_pocket_of_streets_is_left_by_turning_round(kouvola, caplog, tmp_path):
