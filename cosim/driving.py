@@ -463,6 +463,41 @@ def is_tunnel(sim, edge: str) -> bool:
         return False
 
 
+#: m: a lane for cars narrower than this is one the car does not fit in (1.8 m wide). OSM's
+#: ``width`` gives a few (Helsinki's Siltavuorenpenger 1.5 m, Lauf's and Monaco's 1.6 m), and
+#: the passages cut through buildings for them are as narrow: a car started there stood at the
+#: first one for good
+LANE_MIN_WIDTH_M = 2.0
+_NARROW_CACHE: dict = {}
+
+
+def is_too_narrow(sim, edge: str) -> bool:
+    """Is every lane of ``edge`` that cars may use narrower than :data:`LANE_MIN_WIDTH_M`?
+    (Kept per network.)"""
+    try:
+        key = (_net_key(sim), edge)
+    except Exception:
+        key = None
+    out = _NARROW_CACHE.get(key) if key is not None else None
+    if out is None:
+        try:
+            lanes = _drivable_lanes(sim, edge)
+            out = bool(lanes) and all(float(sim.lane.getWidth(ln)) < LANE_MIN_WIDTH_M for ln in lanes)
+        except Exception:
+            out = False
+        if key is not None:
+            if len(_NARROW_CACHE) > 200_000:
+                _NARROW_CACHE.clear()
+            _NARROW_CACHE[key] = out
+    return out
+
+
+def off_the_world(sim, edge: str) -> bool:
+    """Is ``edge`` a road the car cannot drive in the world: a tunnel (:func:`is_tunnel`) or
+    too narrow for it (:func:`is_too_narrow`)?"""
+    return is_tunnel(sim, edge) or is_too_narrow(sim, edge)
+
+
 _TURNAROUND_CACHE: dict = {}
 #: steps worked out (not found in _TURNAROUND_CACHE) so far: the route checks yield every
 #: TURN_PIECE of them (an 80-edge route checked on new streets took 8 ms in one piece)
@@ -491,7 +526,7 @@ def _turnaround(sim, edge: str, nxt: str, after: str | None = None) -> bool:
 
 
 def _turnaround_uncached(sim, edge: str, nxt: str, after: str | None) -> bool:
-    if is_tunnel(sim, nxt) and not is_tunnel(sim, edge):
+    if off_the_world(sim, nxt) and not off_the_world(sim, edge):
         return True
     found = other = False
     for ln in _drivable_lanes(sim, edge):
@@ -675,7 +710,7 @@ def _drivable_nexts_steps(sim, e: str, dst: str | None):
                 continue
             bad = _unturnable(sim, ln, link)
             yield
-            if bad or (ne != dst and is_tunnel(sim, ne)):
+            if bad or (ne != dst and off_the_world(sim, ne)):
                 continue
             w = float(sim.lane.getLength(link[0])) + float(link[7] or 0.0)
             if ne == dst or not _short(sim, ne):
@@ -685,7 +720,7 @@ def _drivable_nexts_steps(sim, e: str, dst: str | None):
                 nne = l2[0].rsplit("_", 1)[0]
                 seen.add(nne)
                 if (nne in best and best[nne][0] <= w) or not _lane_allows(sim, l2[0]) or \
-                        _unturnable(sim, link[0], l2) or (nne != dst and is_tunnel(sim, nne)):
+                        _unturnable(sim, link[0], l2) or (nne != dst and off_the_world(sim, nne)):
                     continue
                 try:
                     chain = _chain_deviation(sim, ln, link, l2)
@@ -768,9 +803,9 @@ def without_turnarounds_steps(sim, edges: list[str]):
             # (into a tunnel: around the whole tunnel, to the first edge after it; two turns
             # around a short edge: rejoining after it)
             j = i + 1 if chain else i
-            while j < len(edges) - 1 and is_tunnel(sim, edges[j]):
+            while j < len(edges) - 1 and off_the_world(sim, edges[j]):
                 j += 1
-            tunnel = j > i or is_tunnel(sim, nxt)
+            tunnel = j > i or off_the_world(sim, nxt)
             found = yield from _detour_steps(sim, out, edges, i, j, tunnel=tunnel)
             if found is not None:
                 back, jj, alt = found

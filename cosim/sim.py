@@ -448,7 +448,7 @@ class Simulation:
                 if plan.get("undrivable"):
                     raise InputError(f"goal unreachable: every route from the car's position to its nearest road "
                                      f"for cars, {on}, {g['dist']:.0f} m from it, goes through a tunnel (the world "
-                                     f"has none) or takes a turn the car cannot make")
+                                     f"has none), a lane narrower than the car or a turn it cannot make")
                 raise InputError(f"goal unreachable: its nearest road for cars, {on}, {g['dist']:.0f} m from it, "
                                  f"cannot be reached by road from the car's position")
             self.summary.arrived = False
@@ -795,8 +795,8 @@ class Simulation:
             if self._no_way_on_said != last:
                 self._no_way_on_said = last
                 log.warning("t=%.1f s: no way on from road %s that the car can drive (each passes a tunnel, which "
-                            "the world has none of, or a turn the car cannot make): it stops at the end of its "
-                            "route", self.t, last)
+                            "the world has none of, a lane narrower than the car or a turn it cannot make): it "
+                            "stops at the end of its route", self.t, last)
             self._extend_retry_t = self.t + 2.0
             self._prepare_extension()
             return

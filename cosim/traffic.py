@@ -1464,7 +1464,7 @@ class SumoTraffic(Component):
         except self._exc as e:
             raise SimulationError(f"no road for cars near ({x:.0f}, {y:.0f}) m: {e}") from None
         lane = f"{edge}_{idx}"
-        from .driving import is_tunnel
+        from .driving import off_the_world
 
         guard = 0
         while lane.startswith(":") and guard < 5:
@@ -1474,8 +1474,9 @@ class SumoTraffic(Component):
             lane, pos, guard = links[0][0], 0.0, guard + 1
         # (the tunnel checked on the lane a junction's lane leads into: a Monaco start snapped
         # onto a junction lane went on into a tunnel, and the car drove on bare terrain)
-        if is_tunnel(s, lane.rsplit("_", 1)[0]):
-            # the world has no tunnels: the nearest lane on the surface instead
+        if off_the_world(s, lane.rsplit("_", 1)[0]):
+            # the world has no tunnels (nor room for the car in a lane narrower than it): the
+            # nearest lane on the surface it fits in instead
             nearest = self._lanes_near(x, y, math.inf, vclass, most=1)
             if nearest:
                 lane = nearest[0][1]
@@ -1611,7 +1612,7 @@ class SumoTraffic(Component):
     def _lanes_near(self, x: float, y: float, radius: float, vclass: str = "passenger", most: int = 12) -> list:
         """(distance, lane) of the lanes on the surface a ``vclass`` may use within ``radius``
         of (x, y), nearest first, one lane an edge, at most ``most``."""
-        from .driving import _lane_allows, is_tunnel
+        from .driving import _lane_allows, off_the_world
 
         s = self._sim
         found = {}
@@ -1625,7 +1626,7 @@ class SumoTraffic(Component):
             d = _polyline_distance(P, x, y)
             edge = ln.rsplit("_", 1)[0]
             if d <= radius and d < found.get(edge, (math.inf,))[0] and _lane_allows(s, ln, vclass) \
-                    and not is_tunnel(s, edge):
+                    and not off_the_world(s, edge):
                 found[edge] = (d, ln)
         return sorted(found.values())[:most]
 
@@ -1788,7 +1789,7 @@ class SumoTraffic(Component):
 
     def _draw_route_steps(self, edge: str, rng: random.Random, min_len: float):
         """:meth:`_draw_route`, a destination at a time (a generator: its value is the answer)."""
-        from .driving import escapes_steps, is_tunnel, undrivable_steps_steps, without_turnarounds_steps
+        from .driving import escapes_steps, off_the_world, undrivable_steps_steps, without_turnarounds_steps
 
         s = self._require()
         key = self._net_key()
@@ -1820,7 +1821,7 @@ class SumoTraffic(Component):
             # in-process: the car's lane path would look for them again across the pipe, 1.9 s
             # for one extension of the default run)
             fixed = list(r.edges)
-            bad = len(fixed) >= 2 and any(is_tunnel(s, e) for e in fixed)
+            bad = len(fixed) >= 2 and any(off_the_world(s, e) for e in fixed)
             if len(fixed) >= 2 and not bad:
                 fixed = (yield from without_turnarounds_steps(s, fixed))[0]
                 bad = bool((yield from undrivable_steps_steps(s, fixed))) or not (yield from escapes_steps(s, fixed[-1]))
@@ -1906,7 +1907,7 @@ class SumoTraffic(Component):
         """(``route`` around what it can go around (``without_turnarounds``), the index of its
         first step the car cannot drive or tunnel): a generator, yielding in its searches,
         whose value is the answer."""
-        from .driving import is_tunnel, undrivable_steps_steps, without_turnarounds_steps
+        from .driving import off_the_world, undrivable_steps_steps, without_turnarounds_steps
 
         s = self._require()
         fixed = (yield from without_turnarounds_steps(s, list(route)))[0]
@@ -1914,7 +1915,7 @@ class SumoTraffic(Component):
         end = len(fixed)
         if bad:
             end = next(k for k in range(len(fixed) - 1) if (fixed[k], fixed[k + 1]) == bad[0]) + 1
-        tun = next((k for k in range(1, end) if is_tunnel(s, fixed[k])), None)
+        tun = next((k for k in range(1, end) if off_the_world(s, fixed[k])), None)
         if tun is not None:
             end = tun
         return fixed, end
@@ -1970,11 +1971,11 @@ class SumoTraffic(Component):
         onto its last edge's other direction by its U-turn or None where the edge has no U-turn
         there for cars, whether that step enters a tunnel): a generator, yielding in its
         searches, whose value is the answer."""
-        from .driving import is_tunnel
+        from .driving import off_the_world
 
         fixed, end = yield from self._head_steps(route)
         head = fixed[:end]
-        tunnel = end < len(fixed) and is_tunnel(self._require(), fixed[end])
+        tunnel = end < len(fixed) and off_the_world(self._require(), fixed[end])
         return head, (head + [self.reverse_edge(head[-1])] if self._has_uturn(head[-1]) else None), tunnel
 
     def plan_route(self, lane: str, pos: float, goal_xy=None, rng_state=None, max_goal_snap_m: float = 1e9,

@@ -324,6 +324,36 @@ def test_a_car_held_against_a_wall_at_a_tight_bend_backs_off_and_drives_on(lauf_
     assert max(abs(r["lateral_offset_m"]) for r in rows) < 4.8
 
 
+@pytest.fixture(scope="module")
+def helsinki_siltavuori(tmp_path_factory):
+    """The Helsinki preset, one chunk round Siltavuorenpenger."""
+    out = tmp_path_factory.mktemp("drv") / "helsinki-siltavuori"
+    build_world(WorldConfig(preset="helsinki", center=(60.1752, 24.9485), chunks=0, out=str(out),
+                            cache_dir=str(out.parent / "cache")))
+    return str(out)
+
+
+def test_a_start_on_a_lane_narrower_than_the_car_is_moved_to_one_it_fits_in(helsinki_siltavuori):
+    """Helsinki, Siltavuorenpenger (-34918425): its lane for cars is 1.5 m wide (OSM's width),
+    and where it passes between two houses the passages cut for it leave 1.70 m; the car (1.8
+    m) started there stood before the first house, held by its lidar, for a whole 300 s run.
+    Such a lane is now no road for the car, like a tunnel: a start on it snaps to the nearest
+    lane it fits in, and routes go round it."""
+    from cosim.driving import LANE_MIN_WIDTH_M, is_too_narrow, off_the_world
+
+    sim = start_sim(helsinki_siltavuori, start=(60.175543, 24.950960), speed_mps=10.0, duration_s=60)
+    try:
+        s = sim.traffic.sumo
+        assert s.lane.getWidth("-34918425_1") < LANE_MIN_WIDTH_M and is_too_narrow(s, "-34918425")
+        assert off_the_world(s, "-34918425") and not off_the_world(s, sim.path.edges[0])
+        narrow = [e for e in sim.path.edges if is_too_narrow(s, e)]
+        assert not narrow and sim.path.edges[0] != "-34918425", sim.path.edges[:3]
+        summary = sim.run()
+    finally:
+        sim.teardown()
+    assert summary.ego_collisions == 0 and summary.distance_m > 200.0, summary.line()
+
+
 def test_a_pocket_of_streets_is_left_by_turning_round(kouvola, caplog, tmp_path):
     """Kouvola (the embedded preset): from -74057323#0 every way on ends at a dead end or a turn
     tighter than the car can make, and so does the other direction's. The route turns back at
@@ -526,7 +556,8 @@ def test_a_goal_route_has_no_turn_the_car_cannot_make_or_is_a_clear_error(monaco
     # goes through a tunnel, from the start and from the road's other direction
     with pytest.raises(InputError, match=r"^goal unreachable: every route from the car's position to its nearest "
                                          r"road for cars, Rue Grimaldi \(lane 8352246#2_2\), 0 m from it, goes through "
-                                         r"a tunnel \(the world has none\) or takes a turn the car cannot make$"):
+                                         r"a tunnel \(the world has none\), a lane narrower than the car or a turn "
+                                         r"it cannot make$"):
         start_sim(monaco, start=(43.739958, 7.420797), goal=(43.735837, 7.420057), duration_s=1)
 
 
