@@ -507,7 +507,8 @@ TURN_PIECE = 4
 
 def _turnaround(sim, edge: str, nxt: str, after: str | None = None) -> bool:
     """Does the route's step edge -> nxt only have links the car cannot drive (turnarounds,
-    turns far tighter than its full lock: :func:`_unturnable`), or enter a tunnel? With
+    turns far tighter than its full lock: :func:`_unturnable`), or enter a road off the world (a
+    tunnel, a lane narrower than the car: :func:`off_the_world`)? With
     ``after`` (the edge after ``nxt``) and ``nxt`` shorter than :data:`CHAIN_EDGE_M`, also
     when the two turns around ``nxt`` taken as one cannot be driven (:func:`_chain_unturnable`).
     Kept per network (a random route's draws check the same steps again and again)."""
