@@ -474,11 +474,7 @@ _NARROW_CACHE: dict = {}
 def is_too_narrow(sim, edge: str) -> bool:
     """Is every lane of ``edge`` that cars may use narrower than :data:`LANE_MIN_WIDTH_M`?
     (Kept per network.)"""
-    try:
-        key = (_net_key(sim), edge)
-    except Exception:
-        key = None
-    out = _NARROW_CACHE.get(key) if key is not None else None
+    key, out = _kept(_NARROW_CACHE, sim, edge)
     if out is None:
         try:
             lanes = _drivable_lanes(sim, edge)
@@ -486,10 +482,26 @@ def is_too_narrow(sim, edge: str) -> bool:
         except Exception:
             out = False
         if key is not None:
-            if len(_NARROW_CACHE) > 200_000:
-                _NARROW_CACHE.clear()
-            _NARROW_CACHE[key] = out
+            _keep(_NARROW_CACHE, key, out)
     return out
+
+
+def _kept(cache: dict, sim, *parts) -> tuple:
+    """(the key (network, *parts) of a cache kept per network, what it holds under it or None);
+    (None, None) where the network cannot be told."""
+    try:
+        key = (_net_key(sim),) + parts
+    except Exception:
+        return None, None
+    return key, cache.get(key)
+
+
+def _keep(cache: dict, key, value) -> None:
+    """``cache[key] = value``, the cache emptied first once it holds 200,000 entries (the
+    caches kept per network: :func:`note_network`)."""
+    if len(cache) > 200_000:
+        cache.clear()
+    cache[key] = value
 
 
 def off_the_world(sim, edge: str) -> bool:
@@ -512,17 +524,13 @@ def _turnaround(sim, edge: str, nxt: str, after: str | None = None) -> bool:
     ``after`` (the edge after ``nxt``) and ``nxt`` shorter than :data:`CHAIN_EDGE_M`, also
     when the two turns around ``nxt`` taken as one cannot be driven (:func:`_chain_unturnable`).
     Kept per network (a random route's draws check the same steps again and again)."""
-    try:
-        key = (_net_key(sim), edge, nxt, after)
-    except Exception:
+    key, out = _kept(_TURNAROUND_CACHE, sim, edge, nxt, after)
+    if key is None:
         return _turnaround_uncached(sim, edge, nxt, after)
-    out = _TURNAROUND_CACHE.get(key)
     if out is None:
         _TURN_WORK[0] += 1
         out = _turnaround_uncached(sim, edge, nxt, after)
-        if len(_TURNAROUND_CACHE) > 200_000:
-            _TURNAROUND_CACHE.clear()
-        _TURNAROUND_CACHE[key] = out
+        _keep(_TURNAROUND_CACHE, key, out)
     return out
 
 
@@ -618,7 +626,7 @@ def note_network(sim, net_file) -> None:
     except Exception:
         return
     if _NET_FILES.get(key, ident) != ident:
-        for cache in (_TURNAROUND_CACHE, _NEXTS_CACHE):
+        for cache in (_TURNAROUND_CACHE, _NEXTS_CACHE, _NARROW_CACHE):
             for k in [k for k in cache if k[0] == key]:
                 del cache[k]
     _NET_FILES[key] = ident
@@ -646,25 +654,15 @@ def _drivable_nexts_steps_kept(sim, e: str, dst: str | None = None):
     """:func:`_drivable_nexts` as a generator: at once where kept, else yielding after each
     turn it measures (a search piece over streets not worked out before took 4.5 ms in SUMO's
     worker, in one step of a Helsinki drive; see :func:`route_graph_steps`)."""
-    try:
-        key = (_net_key(sim), e)
-    except Exception:
-        key = None
-    hit = _NEXTS_CACHE.get(key) if key is not None else None
+    key, hit = _kept(_NEXTS_CACHE, sim, e)
     if hit is None:
         hit = yield from _drivable_nexts_steps(sim, e, None)
         if key is not None:
-            _keep_nexts(key, hit)
+            _keep(_NEXTS_CACHE, key, hit)
     out, seen = hit
     if dst is not None and dst in seen:
         out = (yield from _drivable_nexts_steps(sim, e, dst))[0]
     return out
-
-
-def _keep_nexts(key, hit) -> None:
-    if len(_NEXTS_CACHE) > 200_000:
-        _NEXTS_CACHE.clear()
-    _NEXTS_CACHE[key] = hit
 
 
 def route_graph_steps(sim, edges):
@@ -680,7 +678,7 @@ def route_graph_steps(sim, edges):
             hit = yield from _drivable_nexts_steps(sim, e, None)
         except Exception:      # (an edge SUMO does not know: the search says so itself)
             continue
-        _keep_nexts((net, e), hit)
+        _keep(_NEXTS_CACHE, (net, e), hit)
 
 
 def run_steps(gen):

@@ -360,6 +360,15 @@ BACKOFF_FORWARD_M = 6.0
 BACKOFF_DONE_DEG = 15.0
 
 
+def _corners_near(P: np.ndarray, x: float, y: float, yaw: float, half_l: float, half_w: float, d: float) -> bool:
+    """Whether any of the points ``P`` (n, 2) lies within ``d`` of the box centred at (x, y)
+    heading ``yaw`` (or in it)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    dx, dy = P[:, 0] - x, P[:, 1] - y
+    u, w = np.abs(dx * c + dy * s) - half_l, np.abs(-dx * s + dy * c) - half_w
+    return bool(np.min(np.hypot(np.maximum(u, 0.0), np.maximum(w, 0.0))) < d)
+
+
 class BackOff(_Moves):
     """Two moves from where the car is held still against something it drives into (a wall it
     takes a bend too wide for, a step it does not climb): back at full lock against the way the
@@ -412,22 +421,14 @@ class BackOff(_Moves):
         al, aw = np.asarray(actors.length, dtype=float), np.asarray(actors.width, dtype=float)
         near = np.flatnonzero(np.hypot(ax - st.x, ay - st.y) < 2 * self.half_l + ahead_m + np.maximum(al, aw) + 3.0)
         for i in near.tolist():
-            yaw = float(actors.yaw[i])
-            c, s = math.cos(yaw), math.sin(yaw)
-            # the footprints' corners in the actor's frame, and the actor's corners in each
-            # footprint's (each box's distance to the other's corners: the gap between them)
-            dx, dy = P[:, 0] - ax[i], P[:, 1] - ay[i]
-            u, w = np.abs(dx * c + dy * s) - al[i] / 2.0, np.abs(-dx * s + dy * c) - aw[i] / 2.0
-            if np.min(np.hypot(np.maximum(u, 0.0), np.maximum(w, 0.0))) < BACKOFF_CLEAR_M:
+            # the footprints' corners near the actor's box, or its corners near a footprint
+            # (each box's distance to the other's corners: the gap between them)
+            box = (ax[i], ay[i], float(actors.yaw[i]), al[i] / 2.0, aw[i] / 2.0)
+            if _corners_near(P, *box, BACKOFF_CLEAR_M):
                 return True
-            A = footprint(ax[i], ay[i], yaw, al[i] / 2.0, aw[i] / 2.0)
-            for x, y, h in poses:
-                ch, sh = math.cos(h), math.sin(h)
-                ex, ey = A[:, 0] - x, A[:, 1] - y
-                u = np.abs(ex * ch + ey * sh) - self.half_l
-                w = np.abs(-ex * sh + ey * ch) - self.half_w
-                if np.min(np.hypot(np.maximum(u, 0.0), np.maximum(w, 0.0))) < BACKOFF_CLEAR_M:
-                    return True
+            A = footprint(*box)
+            if any(_corners_near(A, x, y, h, self.half_l, self.half_w, BACKOFF_CLEAR_M) for x, y, h in poses):
+                return True
         return False
 
     def _faces_way_on(self, yaw: float) -> bool:
